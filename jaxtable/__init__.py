@@ -1,0 +1,60 @@
+"""jaxtable: differentiable batch analysis of electric Gough-Stewart (hexapod) test tables.
+
+Importing jaxtable switches JAX to float64 (`jax_enable_x64`): micrometres on metre-scale
+legs need it. Lengths are in mm, angles in radians (degrees only in files, CLI and tables).
+"""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+from ._api import (  # noqa: E402
+    ForwardResult,
+    actuator_command,
+    check_reachable,
+    forward,
+    forward_solve,
+    joint_bend,
+    leg_lengths,
+    paper_rod_rotation,
+    reachable,
+    rod_rotation,
+    spiral_extension,
+)
+from ._effects import AbstractEffect, Spiral, default_effects  # noqa: E402
+from ._errors import KinematicsError, TableFileError  # noqa: E402
+from ._forward import ForwardOptions  # noqa: E402
+from ._io import load_table, reference_table, save_table, table_from_dict  # noqa: E402
+from ._rotation import euler_rate_matrix, paper_rotation_matrix, rotation_matrix  # noqa: E402
+from ._table import Table, check_table, replace  # noqa: E402
+
+__all__ = [
+    "AbstractEffect",
+    "ForwardOptions",
+    "ForwardResult",
+    "KinematicsError",
+    "Spiral",
+    "Table",
+    "TableFileError",
+    "actuator_command",
+    "check_reachable",
+    "check_table",
+    "default_effects",
+    "euler_rate_matrix",
+    "forward",
+    "forward_solve",
+    "joint_bend",
+    "leg_lengths",
+    "load_table",
+    "paper_rod_rotation",
+    "paper_rotation_matrix",
+    "reachable",
+    "reference_table",
+    "replace",
+    "rod_rotation",
+    "rotation_matrix",
+    "save_table",
+    "spiral_extension",
+    "table_from_dict",
+]
+__version__ = "0.1.0"

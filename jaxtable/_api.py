@@ -1,0 +1,276 @@
+"""Public batched functions: input checks at the boundary, jitted vmap inside.
+
+Every function takes poses of shape (..., 6) = (x, y, z, roll, pitch, yaw) in mm and rad
+(any leading dims, float64) and returns per-leg arrays of shape (..., 6).
+"""
+
+from functools import partial
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from . import _kinematics as kin
+from ._batch import flatten_batch, map_batch
+from ._effects import Effects, resolve_effects
+from ._errors import (
+    KinematicsError,
+    check_finite_lengths,
+    check_finite_poses,
+    describe_rows,
+    is_concrete,
+    require_x64,
+)
+from ._forward import ForwardOptions, forward_one
+from ._model import inverse_extension
+from ._table import Table
+
+
+@eqx.filter_jit
+def _map_one(fn, table, flat, chunk):
+    return map_batch(partial(fn, table), flat, chunk=chunk)
+
+
+def _per_pose(fn, table: Table, poses, chunk: int):
+    require_x64()
+    check_finite_poses(poses)
+    flat, batch_shape = flatten_batch(poses, 1)
+    out = _map_one(fn, table, flat, chunk)
+    return out.reshape(batch_shape + out.shape[1:])
+
+
+def leg_lengths(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:
+    """Joint-to-joint leg lengths |t + R a_i^p − b_i| of the rigid geometry, mm. (..., 6)."""
+    return _per_pose(kin.leg_lengths, table, poses, chunk)
+
+
+def rod_rotation(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:
+    """Rod-versus-barrel rotation Δα_i since home, rad, (..., 6). Right-hand rule about the
+    leg axis (base -> platform): positive = counter-clockwise seen from the platform end."""
+    return _per_pose(kin.rod_rotation, table, poses, chunk)
+
+
+def spiral_extension(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:
+    """Passive spiral extension hand·lead·Δα_i/(2π), mm, (..., 6)."""
+    return _per_pose(kin.spiral_extension, table, poses, chunk)
+
+
+def paper_rod_rotation(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:
+    """The paper's literal eqs. (15)-(19), rad, (..., 6); opposite sense to `rod_rotation`.
+    Kept only for comparison (see `jaxtable._kinematics.paper_rod_rotation`)."""
+    return _per_pose(kin.paper_rod_rotation, table, poses, chunk)
+
+
+def joint_bend(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 2 6"]:
+    """U-joint bend from the home leg direction, rad, (..., 2, 6): [base, platform]."""
+    return _per_pose(kin.joint_bend, table, poses, chunk)
+
+
+def _reach_one(table, pose):
+    L = kin.leg_lengths(table, pose)
+    bend = jnp.max(kin.joint_bend(table, pose), axis=0)
+    return L, bend
+
+
+def reachable(table: Table, poses, *, chunk: int = 1 << 16):
+    """Boolean (...,): every leg inside the stroke and every U-joint bend within the limit."""
+    L, bend = _per_pose(_reach_one, table, poses, chunk)
+    lo, hi = table.stroke[0], table.stroke[1]
+    return jnp.all((L >= lo) & (L <= hi) & (bend <= table.joint_angle_limit), axis=-1)
+
+
+def check_reachable(table: Table, poses, *, chunk: int = 1 << 16) -> None:
+    """Raise KinematicsError naming every pose (first few) outside the stroke or joint limits."""
+    L, bend = _per_pose(_reach_one, table, poses, chunk)
+    L, bend = np.asarray(L).reshape(-1, 6), np.asarray(bend).reshape(-1, 6)
+    lo, hi = (float(v) for v in np.asarray(table.stroke))
+    limit = float(table.joint_angle_limit)
+    out_stroke = (L < lo) | (L > hi)
+    out_bend = bend > limit
+    bad = out_stroke.any(1) | out_bend.any(1)
+    if bad.any():
+
+        def what(i):
+            parts = [
+                f"leg {k + 1} length {L[i, k]:.3f} mm outside stroke [{lo}, {hi}]"
+                for k in np.flatnonzero(out_stroke[i])
+            ] + [
+                f"leg {k + 1} joint bend {np.rad2deg(bend[i, k]):.2f} deg > limit "
+                f"{np.rad2deg(limit):.2f} deg"
+                for k in np.flatnonzero(out_bend[i])
+            ]
+            return "; ".join(parts)
+
+        batch_shape = np.shape(poses)[:-1]
+        raise KinematicsError("pose(s) unreachable:\n" + describe_rows(bad, batch_shape, what))
+
+
+def _check_stroke(table: Table, lengths, batch_shape, name: str) -> None:
+    if not is_concrete(table, lengths):
+        return
+    L = np.asarray(lengths).reshape(-1, 6)
+    lo, hi = (float(v) for v in np.asarray(table.stroke))
+    out = (L < lo) | (L > hi)
+    if out.any():
+
+        def what(i):
+            return "; ".join(
+                f"leg {k + 1} {L[i, k]:.3f} mm outside stroke [{lo}, {hi}]"
+                for k in np.flatnonzero(out[i])
+            )
+
+        raise KinematicsError(f"{name} outside the stroke:\n" + describe_rows(out.any(1), batch_shape, what))
+
+
+@eqx.filter_jit
+def _inverse_flat(table, effects, flat, chunk):
+    return map_batch(partial(inverse_extension, table, effects), flat, chunk=chunk)
+
+
+def actuator_command(
+    table: Table,
+    poses,
+    compensate: bool = True,
+    *,
+    effects: Effects | None = None,
+    check: bool = True,
+    chunk: int = 1 << 16,
+) -> Float[Array, "... 6"]:
+    """Joint-to-joint leg lengths the controller should command for `poses`, mm, (..., 6).
+
+    `compensate=False`: the rigid inverse kinematics |l_i(q)| (what an uncompensated
+    controller commands). `compensate=True`: the command L0_i + s_i for which the hardware,
+    with its effects (default: the table's own, i.e. the passive spiral term), reaches the
+    pose: the paper's Δl* = Δl − Δl2 for the spiral term. The actuator extension is
+    s_i = command_i − L0_i.
+
+    With `check=True` (default) a non-finite pose or a command outside the stroke raises
+    KinematicsError naming the pose and leg.
+    """
+    require_x64()
+    check_finite_poses(poses)
+    eff = resolve_effects(table, effects) if compensate else {}
+    flat, batch_shape = flatten_batch(poses, 1)
+    s, _ = _inverse_flat(table, eff, flat, chunk)
+    cmd = table.zero_lengths + s
+    if check:
+        _check_stroke(table, cmd, batch_shape, "commanded leg length(s)")
+    return cmd.reshape(batch_shape + (6,))
+
+
+class ForwardResult(eqx.Module):
+    """Per-command outcome of `forward_solve`. Shapes: pose (..., 6); others (...)."""
+
+    pose: Float[Array, "... 6"]
+    code: Array
+    steps: Array
+    residual: Float[Array, "..."]
+
+    @property
+    def ok(self):
+        return self.code == 0
+
+
+_REASONS = {
+    1: "Newton hit its step limit",
+    2: "singular Jacobian (a singular configuration, or the solve left the workspace)",
+    7: "Newton hit its step limit",
+    8: "Newton diverged",
+    9: "non-finite values in the solve",
+    100: "converged to a pose with residual above tolerance",
+    101: "converged to a non-physical assembly (platform at or below the base)",
+}
+
+
+@eqx.filter_jit
+def _forward_flat(table, effects, s, guess, options, chunk):
+    def one(s_i, g_i):
+        return forward_one(table, effects, s_i, g_i, options)
+
+    pose, code, steps, resid = map_batch(one, s, guess, chunk=chunk)
+    code = jnp.where((code == 0) & ~(resid <= options.accept_residual), 100, code)
+    below = pose[:, 2] + table.home_height <= 0
+    code = jnp.where((code == 0) & below, 101, code)
+    return pose, code, steps, resid
+
+
+def forward_solve(
+    table: Table,
+    commands,
+    *,
+    effects: Effects | None = None,
+    guess=None,
+    options: ForwardOptions = ForwardOptions(),
+    chunk: int = 1 << 16,
+) -> ForwardResult:
+    """Forward kinematics without raising: the pose and a status for every command.
+
+    Use `forward` unless you want to handle failures pose by pose (code 0 = converged).
+    """
+    require_x64()
+    check_finite_lengths(commands)
+    eff = resolve_effects(table, effects)
+    flat, batch_shape = flatten_batch(commands, 1)
+    s = flat - table.zero_lengths
+    if guess is None:
+        g = jnp.zeros_like(flat)
+    else:
+        check_finite_poses(guess, "guess")
+        g = jnp.broadcast_to(jnp.asarray(guess, dtype=jnp.float64), flat.shape[:1] + (6,))
+    pose, code, steps, resid = _forward_flat(table, eff, s, g, options, chunk)
+    return ForwardResult(
+        pose.reshape(batch_shape + (6,)),
+        code.reshape(batch_shape),
+        steps.reshape(batch_shape),
+        resid.reshape(batch_shape),
+    )
+
+
+def forward(
+    table: Table,
+    commands,
+    *,
+    effects: Effects | None = None,
+    guess=None,
+    options: ForwardOptions = ForwardOptions(),
+    chunk: int = 1 << 16,
+) -> Float[Array, "... 6"]:
+    """Pose (..., 6) the table reaches for commanded joint-to-joint lengths (..., 6), mm.
+
+    The actuator extension is s_i = command_i − L0_i; the pose q solves
+    |l_i(q)| = L0_i + s_i + Σ effects_i(q, s) by Newton (optimistix) from `guess` (default:
+    home), with the effects (default: the table's hardware effects, i.e. the passive spiral
+    term; `{}` = rigid) inside the solve. Differentiable by implicit differentiation.
+
+    Raises KinematicsError, naming the pose(s) and the reason, for non-finite commands,
+    commands outside the stroke, non-convergence, a singular Jacobian or a non-physical
+    solution. Inside `jit`/`grad` the same failures raise through `eqx.error_if`.
+    """
+    flat_shape = np.shape(commands)[:-1]
+    if is_concrete(commands):
+        check_finite_lengths(commands)
+        _check_stroke(table, commands, flat_shape, "commanded leg length(s)")
+    res = forward_solve(
+        table, commands, effects=effects, guess=guess, options=options, chunk=chunk
+    )
+    if is_concrete(res):
+        code = np.asarray(res.code).reshape(-1)
+        if np.any(code != 0):
+            resid = np.asarray(res.residual).reshape(-1)
+            steps = np.asarray(res.steps).reshape(-1)
+
+            def what(i):
+                c = int(code[i])
+                reason = _REASONS.get(c, f"optimistix result code {c}")
+                return f"{reason} (after {int(steps[i])} steps, residual {resid[i]:.3g} mm)"
+
+            raise KinematicsError(
+                "forward kinematics failed:\n" + describe_rows(code != 0, flat_shape, what)
+            )
+        return res.pose
+    return eqx.error_if(
+        res.pose,
+        jnp.any(res.code != 0),
+        "forward kinematics failed for at least one command (call forward_solve for codes)",
+    )

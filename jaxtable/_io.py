@@ -1,0 +1,174 @@
+"""Table files (TOML): load, validate, save. Schema: DESIGN.md "Table file"."""
+
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import TableFileError
+from ._table import Table, check_table
+
+REQUIRED = (
+    "home_height",
+    "lead",
+    "stroke",
+    "base_joints",
+    "platform_joints",
+    "base_axes",
+    "platform_axes",
+)
+OPTIONAL = (
+    "name",
+    "hand",
+    "joint_angle_limit",
+    "platform_mass",
+    "platform_cog",
+    "zero_lengths",
+)
+
+
+def _array(doc: dict, key: str, shape: tuple[int, ...], where: str) -> np.ndarray:
+    value = doc[key]
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TableFileError(
+            f"{where}: '{key}' must be numbers of shape {shape}; got {value!r}"
+        ) from None
+    if arr.shape != shape:
+        raise TableFileError(f"{where}: '{key}' must have shape {shape}; got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise TableFileError(f"{where}: '{key}' has non-finite values")
+    return arr
+
+
+def _per_leg(doc: dict, key: str, where: str) -> np.ndarray:
+    value = doc[key]
+    if isinstance(value, list):
+        return _array(doc, key, (6,), where)
+    return np.full(6, float(_array(doc, key, (), where)))
+
+
+def _hand(doc: dict, where: str) -> np.ndarray:
+    value = doc.get("hand", "right")
+    values = value if isinstance(value, list) else [value] * 6
+    if len(values) != 6:
+        raise TableFileError(f"{where}: 'hand' must be \"right\", \"left\" or 6 of them")
+    out = []
+    for i, h in enumerate(values):
+        if h not in ("right", "left"):
+            raise TableFileError(
+                f"{where}: 'hand' for leg {i + 1} must be \"right\" or \"left\"; got {h!r}"
+            )
+        out.append(1.0 if h == "right" else -1.0)
+    return np.array(out)
+
+
+def table_from_dict(doc: dict, where: str = "table") -> Table:
+    """Build and validate a Table from a parsed TOML document (degrees for angles)."""
+    missing = [k for k in REQUIRED if k not in doc]
+    if missing:
+        raise TableFileError(f"{where}: missing key(s) {', '.join(missing)}")
+    unknown = [k for k in doc if k not in REQUIRED + OPTIONAL]
+    if unknown:
+        raise TableFileError(
+            f"{where}: unknown key(s) {', '.join(unknown)}; allowed: "
+            f"{', '.join(REQUIRED + OPTIONAL)}"
+        )
+    kwargs = dict(
+        base_joints=_array(doc, "base_joints", (6, 3), where),
+        platform_joints=_array(doc, "platform_joints", (6, 3), where),
+        base_axes=_array(doc, "base_axes", (6, 3), where),
+        platform_axes=_array(doc, "platform_axes", (6, 3), where),
+        home_height=_array(doc, "home_height", (), where),
+        stroke=_array(doc, "stroke", (2,), where),
+        lead=_per_leg(doc, "lead", where),
+        hand=_hand(doc, where),
+        name=str(doc.get("name", "table")),
+    )
+    if "zero_lengths" in doc:
+        kwargs["zero_lengths"] = _array(doc, "zero_lengths", (6,), where)
+    if "joint_angle_limit" in doc:
+        kwargs["joint_angle_limit"] = np.deg2rad(_array(doc, "joint_angle_limit", (), where))
+    if "platform_mass" in doc:
+        kwargs["platform_mass"] = _array(doc, "platform_mass", (), where)
+    if "platform_cog" in doc:
+        kwargs["platform_cog"] = _array(doc, "platform_cog", (3,), where)
+    table = Table(**kwargs)
+    try:
+        check_table(table)
+    except TableFileError as e:
+        raise TableFileError(f"{where}: {e}") from None
+    return table
+
+
+def load_table(path) -> Table:
+    """Read a table file (TOML, DESIGN.md schema) and validate it.
+
+    Raises TableFileError naming the file and the offending key/row: a missing or unknown
+    key, a wrong shape, a zero or non-unit joint axis, an axis parallel to its leg at home,
+    a home pose outside the stroke.
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            doc = tomllib.load(f)
+    except FileNotFoundError:
+        raise TableFileError(f"table file not found: {path}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise TableFileError(f"{path}: not valid TOML: {e}") from None
+    return table_from_dict(doc, where=str(path))
+
+
+def reference_table() -> Table:
+    """The embedded default: a reconstruction of the paper's table (see its TOML header)."""
+    ref = resources.files("jaxtable") / "data" / "reference_table.toml"
+    with resources.as_file(ref) as path:
+        return load_table(path)
+
+
+def _fmt(x) -> str:
+    if isinstance(x, str):
+        return '"' + x.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_fmt(v) for v in x) + "]"
+    x = float(x)
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return repr(x)
+
+
+def table_to_toml(table: Table, header: str = "") -> str:
+    """TOML text of `table` (DESIGN.md schema); floats written exactly (shortest repr)."""
+    lead = np.asarray(table.lead)
+    hand = ["right" if h > 0 else "left" for h in np.asarray(table.hand)]
+    lines = [f"# {h}" if h else "#" for h in header.splitlines()] if header else []
+    lines += [
+        f"name = {_fmt(table.name)}",
+        f"home_height = {_fmt(table.home_height)}",
+        f"lead = {_fmt(lead[0] if np.all(lead == lead[0]) else lead)}",
+        f"hand = {_fmt(hand[0] if len(set(hand)) == 1 else hand)}",
+        f"stroke = {_fmt(np.asarray(table.stroke))}",
+    ]
+    limit = float(table.joint_angle_limit)
+    if math.isfinite(limit):
+        lines.append(f"joint_angle_limit = {_fmt(float(f'{np.rad2deg(limit):.12g}'))}")
+    lines += [
+        f"platform_mass = {_fmt(table.platform_mass)}",
+        f"platform_cog = {_fmt(np.asarray(table.platform_cog))}",
+        f"zero_lengths = {_fmt(np.asarray(table.zero_lengths))}",
+    ]
+    for key in ("base_joints", "platform_joints", "base_axes", "platform_axes"):
+        rows = np.asarray(getattr(table, key))
+        lines.append(f"{key} = [")
+        lines += [f"    {_fmt(r)}," for r in rows]
+        lines.append("]")
+    return "\n".join(lines) + "\n"
+
+
+def save_table(table: Table, path, header: str = "") -> None:
+    """Write `table` to `path` as TOML (angles in degrees). `load_table` reads it back exactly."""
+    check_table(table)
+    Path(path).write_text(table_to_toml(table, header))

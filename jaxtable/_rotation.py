@@ -1,0 +1,63 @@
+"""Rotation matrices for the Z-Y-X (yaw-pitch-roll) attitude convention."""
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+
+def rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """R = Rz(yaw) @ Ry(pitch) @ Rx(roll), platform frame -> base frame.
+
+    **Arguments:** `angles`: (roll, pitch, yaw) = (φ, θ, ψ) in radians, shape (3,).
+
+    **Returns:** the 3×3 rotation matrix. A vector `a_p` fixed in the platform has base-frame
+    coordinates `R @ a_p`. This is the paper's Z-Y-X order written correctly (its eq. (2) has
+    three misprinted elements; see `paper_rotation_matrix`).
+    """
+    phi, theta, psi = angles[0], angles[1], angles[2]
+    cf, sf = jnp.cos(phi), jnp.sin(phi)
+    ct, st = jnp.cos(theta), jnp.sin(theta)
+    cp, sp = jnp.cos(psi), jnp.sin(psi)
+    return jnp.array(
+        [
+            [cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf],
+            [sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf],
+            [-st, ct * sf, ct * cf],
+        ]
+    )
+
+
+def paper_rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """The paper's eq. (2) exactly as printed, typos included. For comparison only.
+
+    Elements (1,3), (2,2) and (2,3) (1-based) are misprinted; the matrix is in general not a
+    rotation. Never use it for kinematics.
+    """
+    phi, theta, psi = angles[0], angles[1], angles[2]
+    cf, sf = jnp.cos(phi), jnp.sin(phi)
+    ct, st = jnp.cos(theta), jnp.sin(theta)
+    cp, sp = jnp.cos(psi), jnp.sin(psi)
+    return jnp.array(
+        [
+            [cp * ct, cp * st * sf - sp * cf, sp * sf - sp * st * cf],
+            [sp * ct, cp * cf - sp * st * sf, cp * st * cf - cp * sf],
+            [-st, ct * sf, ct * cf],
+        ]
+    )
+
+
+def euler_rate_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """E(φ, θ, ψ) with ω = E @ (dφ, dθ, dψ): Z-Y-X Euler-angle rates to the base-frame angular
+    velocity (equivalently, small Euler increments to the small rotation vector).
+
+    At zero attitude E is the identity, which is the paper's eq. (6)-(7) assumption.
+    """
+    theta, psi = angles[1], angles[2]
+    ct, st = jnp.cos(theta), jnp.sin(theta)
+    cp, sp = jnp.cos(psi), jnp.sin(psi)
+    return jnp.array(
+        [
+            [cp * ct, -sp, 0.0],
+            [sp * ct, cp, 0.0],
+            [-st, 0.0, 1.0],
+        ]
+    )

@@ -1,0 +1,192 @@
+"""The table model: geometry and hardware of a 6-U(RP)U hexapod as an equinox pytree."""
+
+import equinox as eqx
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._errors import TableFileError, is_concrete
+
+
+def _f64(x) -> Array:
+    return jnp.asarray(x, dtype=jnp.float64)
+
+
+class Table(eqx.Module):
+    """Geometry and hardware of one hexapod. All lengths in mm, angles in radians.
+
+    Leaves (all float64 arrays, so any of them can be differentiated or fitted):
+
+    - `base_joints` (6, 3): base U-joint centres b_i, base frame.
+    - `platform_joints` (6, 3): platform U-joint centres a_i^p, platform frame.
+    - `base_axes` (6, 3): unit axis n_i of each base U-joint's base-fixed revolute, base frame.
+    - `platform_axes` (6, 3): unit axis j_i^p of each platform U-joint's platform-fixed
+      revolute, platform frame.
+    - `zero_lengths` (6,): L0_i, joint-to-joint length at actuator zero (homing reference).
+      Defaults to the home-pose leg lengths.
+    - `home_height` (): z of the platform origin at home, base frame.
+    - `lead` (6,): screw lead, mm/rev (>= 0; 0 = no passive term on that leg).
+    - `hand` (6,): +1 right-hand screw, -1 left-hand.
+    - `stroke` (2,): allowed joint-to-joint length [lo, hi].
+    - `joint_angle_limit` (): largest U-joint bend from its home direction (inf = none).
+    - `platform_mass` (): kg; `platform_cog` (3,): mm, platform frame.
+
+    `name` is static metadata. Shapes are checked on construction; values (unit axes, axes not
+    parallel to legs) by `check_table`, which `load_table` calls.
+    """
+
+    base_joints: Float[Array, "6 3"]
+    platform_joints: Float[Array, "6 3"]
+    base_axes: Float[Array, "6 3"]
+    platform_axes: Float[Array, "6 3"]
+    zero_lengths: Float[Array, "6"]
+    home_height: Float[Array, ""]
+    lead: Float[Array, "6"]
+    hand: Float[Array, "6"]
+    stroke: Float[Array, "2"]
+    joint_angle_limit: Float[Array, ""]
+    platform_mass: Float[Array, ""]
+    platform_cog: Float[Array, "3"]
+    name: str = eqx.field(static=True)
+
+    def __init__(
+        self,
+        base_joints,
+        platform_joints,
+        base_axes,
+        platform_axes,
+        home_height,
+        stroke,
+        lead=0.0,
+        hand=1.0,
+        zero_lengths=None,
+        joint_angle_limit=jnp.inf,
+        platform_mass=0.0,
+        platform_cog=(0.0, 0.0, 0.0),
+        name: str = "table",
+    ):
+        self.base_joints = _f64(base_joints)
+        self.platform_joints = _f64(platform_joints)
+        self.base_axes = _f64(base_axes)
+        self.platform_axes = _f64(platform_axes)
+        self.home_height = _f64(home_height)
+        self.stroke = _f64(stroke)
+        self.lead = jnp.broadcast_to(_f64(lead), (6,))
+        self.hand = jnp.broadcast_to(_f64(hand), (6,))
+        self.joint_angle_limit = _f64(joint_angle_limit)
+        self.platform_mass = _f64(platform_mass)
+        self.platform_cog = _f64(platform_cog)
+        self.name = name
+        if zero_lengths is None:
+            t = jnp.array([0.0, 0.0, 1.0]) * self.home_height
+            zero_lengths = jnp.linalg.norm(t + self.platform_joints - self.base_joints, axis=-1)
+        self.zero_lengths = _f64(zero_lengths)
+
+    def __check_init__(self):
+        shapes = {
+            "base_joints": (6, 3),
+            "platform_joints": (6, 3),
+            "base_axes": (6, 3),
+            "platform_axes": (6, 3),
+            "zero_lengths": (6,),
+            "home_height": (),
+            "stroke": (2,),
+            "joint_angle_limit": (),
+            "platform_mass": (),
+            "platform_cog": (3,),
+        }
+        for field, shape in shapes.items():
+            got = getattr(self, field).shape
+            if got != shape:
+                raise TableFileError(f"table '{field}' must have shape {shape}; got {got}")
+
+    @property
+    def signed_lead(self) -> Float[Array, "6"]:
+        """hand · lead, mm/rev: positive for a right-hand screw, negative for a left-hand one."""
+        return self.hand * self.lead
+
+
+def home_leg_vectors(table: Table) -> Float[Array, "6 3"]:
+    """l_i at the home pose, base frame, mm. Shape (6, 3)."""
+    t = jnp.array([0.0, 0.0, 1.0]) * table.home_height
+    return t + table.platform_joints - table.base_joints
+
+
+def check_table(table: Table, *, axis_tol: float = 1e-6, min_axis_angle_deg: float = 1.0):
+    """Value checks a table must pass before kinematics makes sense. Raises TableFileError.
+
+    - joint axes are unit vectors (|n| = 1 within `axis_tol`), never zero;
+    - no joint axis is within `min_axis_angle_deg` of its leg at home (the rod rotation is
+      undefined there);
+    - the home height is positive, the home leg lengths are positive and inside the stroke,
+      and the stroke is ordered;
+    - lead >= 0, hand = ±1, joint_angle_limit > 0, platform_mass >= 0.
+    """
+    if not is_concrete(table):
+        return table
+    problems = []
+    for field in ("base_axes", "platform_axes"):
+        norms = np.linalg.norm(np.asarray(getattr(table, field)), axis=-1)
+        for i, n in enumerate(norms):
+            if not np.isfinite(n) or n < 1e-12:
+                problems.append(f"{field} row {i + 1} (leg {i + 1}) is a zero vector")
+            elif abs(n - 1.0) > axis_tol:
+                problems.append(
+                    f"{field} row {i + 1} (leg {i + 1}) has length {n:.6g}; axes must be unit "
+                    f"vectors (normalise it)"
+                )
+    for field in ("base_joints", "platform_joints", "zero_lengths", "lead", "hand", "stroke"):
+        if not np.all(np.isfinite(np.asarray(getattr(table, field)))):
+            problems.append(f"{field} has non-finite values")
+    if problems:
+        raise TableFileError("malformed table:\n  " + "\n  ".join(problems))
+
+    home = np.asarray(home_leg_vectors(table))
+    lengths = np.linalg.norm(home, axis=-1)
+    u = home / lengths[:, None]
+    sin_min = np.sin(np.deg2rad(min_axis_angle_deg))
+    for field, axes in (
+        ("base_axes", np.asarray(table.base_axes)),
+        ("platform_axes", np.asarray(table.platform_axes)),
+    ):
+        s = np.linalg.norm(np.cross(axes, u), axis=-1)
+        for i in np.flatnonzero(s < sin_min):
+            problems.append(
+                f"{field} row {i + 1} (leg {i + 1}) is parallel to its leg at home "
+                f"(angle {np.rad2deg(np.arcsin(min(s[i], 1.0))):.3g} deg); the rod rotation is "
+                f"undefined"
+            )
+    lo, hi = (float(v) for v in np.asarray(table.stroke))
+    if float(table.home_height) <= 0:
+        problems.append(f"home_height must be positive; got {float(table.home_height)}")
+    if not lo < hi:
+        problems.append(f"stroke must be [lo, hi] with lo < hi; got [{lo}, {hi}]")
+    for i, length in enumerate(lengths):
+        if not lo <= length <= hi:
+            problems.append(
+                f"leg {i + 1}: home length {length:.3f} mm lies outside the stroke [{lo}, {hi}]"
+            )
+    if np.any(np.asarray(table.lead) < 0):
+        problems.append("lead must be >= 0 (use hand = 'left' for a left-hand screw)")
+    if not np.all(np.isin(np.asarray(table.hand), (-1.0, 1.0))):
+        problems.append("hand must be +1 (right) or -1 (left) for every leg")
+    if not float(table.joint_angle_limit) > 0:
+        problems.append("joint_angle_limit must be positive")
+    if float(table.platform_mass) < 0:
+        problems.append("platform_mass must be >= 0")
+    if problems:
+        raise TableFileError("malformed table:\n  " + "\n  ".join(problems))
+    return table
+
+
+def replace(table: Table, **changes) -> Table:
+    """A copy of `table` with some leaves replaced (values converted to float64)."""
+    names = list(changes)
+    return eqx.tree_at(
+        lambda t: [getattr(t, n) for n in names],
+        table,
+        [_f64(changes[n]) for n in names],
+    )
+
+
