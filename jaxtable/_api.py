@@ -7,6 +7,7 @@ Every function takes poses of shape (..., 6) = (x, y, z, roll, pitch, yaw) in mm
 from functools import partial
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -37,7 +38,7 @@ def _per_pose(fn, table: Table, poses, chunk: int):
     check_finite_poses(poses)
     flat, batch_shape = flatten_batch(poses, 1)
     out = _map_one(fn, table, flat, chunk)
-    return out.reshape(batch_shape + out.shape[1:])
+    return jax.tree.map(lambda o: o.reshape(batch_shape + o.shape[1:]), out)
 
 
 def leg_lengths(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:

@@ -11,8 +11,10 @@ from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
+from ._errors import is_concrete
 from ._kinematics import rod_rotation
 from ._table import Table
 
@@ -53,10 +55,11 @@ Effects = Mapping[str, AbstractEffect]
 
 
 def default_effects(table: Table) -> dict[str, AbstractEffect]:
-    """The effects the hardware has: `spiral` when any leg has a non-zero lead."""
-    if bool(jnp.any(table.lead != 0)):
-        return {"spiral": Spiral.from_table(table)}
-    return {}
+    """The effects the hardware has: `spiral` unless every lead is (concretely) zero. A traced
+    lead (inside jit/grad) keeps the term, so derivatives with respect to it exist."""
+    if is_concrete(table.lead) and not np.any(np.asarray(table.lead) != 0):
+        return {}
+    return {"spiral": Spiral.from_table(table)}
 
 
 def resolve_effects(table: Table, effects: Effects | None) -> dict[str, AbstractEffect]:

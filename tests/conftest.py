@@ -1,0 +1,25 @@
+import jax
+import numpy as np
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+import jaxtable as jt  # noqa: E402
+
+# Workspace box used by the tests (mm, rad): the reference table's combined-motion box.
+BOX = np.array([100.0, 100.0, 50.0, np.deg2rad(7.5), np.deg2rad(7.5), np.deg2rad(10.0)])
+
+
+@pytest.fixture(scope="session")
+def table():
+    return jt.reference_table()
+
+
+def random_poses(n, seed=0, box=BOX):
+    return np.random.default_rng(seed).uniform(-1, 1, (n, 6)) * box
+
+
+def x_line(xs):
+    p = np.zeros((len(xs), 6))
+    p[:, 0] = xs
+    return p

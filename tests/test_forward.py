@@ -1,0 +1,193 @@
+"""Forward kinematics: round trips, compensation, implicit gradients, failures named."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import random_poses
+
+import jaxtable as jt
+from jaxtable import _kinematics as kin
+
+TOL_MM, TOL_RAD = 1e-9, 1e-10
+
+
+def assert_pose_close(q, p):
+    err = np.abs(np.asarray(q) - np.asarray(p))
+    assert err[..., :3].max() < TOL_MM, err[..., :3].max()
+    assert err[..., 3:].max() < TOL_RAD, err[..., 3:].max()
+
+
+@pytest.fixture(scope="module")
+def poses():
+    return random_poses(10_000, seed=11)
+
+
+def test_round_trip_rigid(table, poses):
+    cmd = jt.actuator_command(table, poses, compensate=False)
+    np.testing.assert_array_equal(np.asarray(cmd), np.asarray(jt.leg_lengths(table, poses)))
+    assert_pose_close(jt.forward(table, cmd, effects={}), poses)
+
+
+def test_round_trip_with_spiral(table, poses):
+    cmd = jt.actuator_command(table, poses, compensate=True)
+    # the command differs from the rigid one by exactly the passive extension
+    np.testing.assert_allclose(
+        np.asarray(cmd),
+        np.asarray(jt.leg_lengths(table, poses)) - np.asarray(jt.spiral_extension(table, poses)),
+        atol=1e-12,
+    )
+    assert_pose_close(jt.forward(table, cmd), poses)  # hardware effects: spiral inside
+
+
+def test_compensation_lands_on_pose_and_uncompensated_does_not(table):
+    line = np.zeros((17, 6))
+    line[:, 0] = np.linspace(-200, 200, 17)
+    comp = jt.forward(table, jt.actuator_command(table, line, compensate=True))
+    assert_pose_close(comp, line)
+    raw = np.asarray(jt.forward(table, jt.actuator_command(table, line, compensate=False)))
+    err = raw - line
+    assert np.abs(err[:, :3]).max() > 0.05  # the passive term moves the platform (mm)
+    # first order, the error is the paper's eq. (21): Δq = J⁻¹ Δl2 (Euler increments)
+    for k in (0, 4, 12, 16):
+        J = np.asarray(jax.jacfwd(lambda q: kin.leg_lengths(table, q))(jnp.asarray(line[k])))
+        dl2 = np.asarray(jt.spiral_extension(table, line[k]))
+        lin = np.linalg.solve(J, dl2)
+        np.testing.assert_allclose(err[k], lin, atol=1e-2 * np.abs(lin).max() + 1e-12)
+
+
+def test_s_dependent_effect_uses_newton_inverse(table):
+    class Scale(jt.AbstractEffect):
+        eps: jax.Array
+        depends_on_extension = True
+
+        def __call__(self, table, pose, s):
+            return self.eps * s + 0.01 * jnp.sin(s / 5.0)
+
+    eff = {"scale": Scale(jnp.full(6, 8.3e-5 * 50)), **jt.default_effects(table)}
+    poses = random_poses(200, seed=2)
+    cmd = jt.actuator_command(table, poses, effects=eff)
+    s = np.asarray(cmd) - np.asarray(table.zero_lengths)
+    # the defining equation holds: |l| = L0 + s + spiral + eps s + 0.01 sin(s/5)
+    rhs = (
+        np.asarray(table.zero_lengths) + s + np.asarray(jt.spiral_extension(table, poses))
+        + 8.3e-5 * 50 * s + 0.01 * np.sin(s / 5.0)
+    )
+    np.testing.assert_allclose(np.asarray(jt.leg_lengths(table, poses)), rhs, atol=1e-10)
+    assert_pose_close(jt.forward(table, cmd, effects=eff), poses)
+
+
+def test_forward_gradient_matches_finite_differences(table):
+    pose = random_poses(1, seed=12)[0]
+    cmd = np.asarray(jt.actuator_command(table, pose))
+
+    def f(c):
+        return jt.forward(table, c)
+
+    J = np.asarray(jax.jacfwd(f)(jnp.asarray(cmd)))
+    h = 1e-4
+    Jfd = np.stack(
+        [(np.asarray(f(cmd + h * e)) - np.asarray(f(cmd - h * e))) / (2 * h) for e in np.eye(6)],
+        -1,
+    )
+    np.testing.assert_allclose(J, Jfd, rtol=1e-6, atol=1e-11)
+    # and equals the inverse of d(actuator length)/d(pose) (implicit function theorem)
+    def g(q):
+        return kin.leg_lengths(table, q) - kin.spiral_extension(table, q)
+
+    np.testing.assert_allclose(J, np.linalg.inv(np.asarray(jax.jacfwd(g)(jnp.asarray(pose)))),
+                               rtol=1e-9, atol=1e-14)
+
+
+def test_forward_gradient_wrt_table_parameters(table):
+    """d pose / d lead through the solve (implicit diff) = finite differences."""
+    pose = np.array([-150.0, 40.0, 10.0, 0.05, -0.03, 0.08])
+    cmd = jt.actuator_command(table, pose, compensate=False)
+
+    def f(lead):
+        t = jt.replace(table, lead=lead)
+        return jt.forward(t, cmd)
+
+    lead = np.asarray(table.lead)
+    J = np.asarray(jax.jacfwd(f)(jnp.asarray(lead)))
+    h = 1e-3
+    Jfd = np.stack(
+        [(np.asarray(f(lead + h * e)) - np.asarray(f(lead - h * e))) / (2 * h) for e in np.eye(6)],
+        -1,
+    )
+    np.testing.assert_allclose(J, Jfd, rtol=1e-5, atol=1e-12)
+    assert np.abs(J).max() > 1e-3
+
+
+# --- bad input ------------------------------------------------------------------------------
+
+
+def test_nan_pose_is_named(table):
+    poses = random_poses(5, seed=1)
+    poses[3, 4] = np.nan
+    for fn in (jt.leg_lengths, jt.rod_rotation, jt.spiral_extension, jt.actuator_command):
+        with pytest.raises(jt.KinematicsError, match=r"pose \[3\]: non-finite pitch"):
+            fn(table, poses)
+
+
+def test_pose_outside_stroke_is_named(table):
+    poses = np.zeros((2, 3, 6))
+    poses[1, 2, 2] = 450.0  # 450 mm up: every leg past the 1060 mm stroke end
+    with pytest.raises(jt.KinematicsError) as e:
+        jt.actuator_command(table, poses)
+    msg = str(e.value)
+    assert "pose [1, 2]" in msg and "leg 1" in msg and "outside stroke [600.0, 1060.0]" in msg
+    assert "pose [0, 0]" not in msg
+
+
+def test_reachable_and_joint_limits(table):
+    line = np.zeros((3, 6))
+    line[:, 0] = [-200, 0, 200]
+    assert np.asarray(jt.reachable(table, line)).all()
+    jt.check_reachable(table, line)
+    tilt = np.zeros(6)
+    tilt[3] = np.deg2rad(40)  # roll 40 deg: beyond the 35 deg U-joint limit
+    assert not bool(jt.reachable(table, tilt))
+    with pytest.raises(jt.KinematicsError, match="joint bend .* > limit 35.00 deg"):
+        jt.check_reachable(table, tilt)
+
+
+def test_forward_refuses_commands_outside_stroke(table):
+    cmd = np.full((4, 6), 820.0)
+    cmd[2, 5] = 1200.0
+    with pytest.raises(jt.KinematicsError, match=r"pose \[2\]: leg 6 1200.000 mm outside stroke"):
+        jt.forward(table, cmd)
+
+
+def test_forward_reports_unsolvable_command(table):
+    """Alternate legs at opposite stroke ends: each length is inside the stroke but no pose
+    fits all six; the failure is named, not returned as NaN."""
+    cmd = np.full((3, 6), float(table.zero_lengths[0]))
+    cmd[1] = [600.0, 1060.0, 600.0, 1060.0, 600.0, 1060.0]
+    with pytest.raises(jt.KinematicsError) as e:
+        jt.forward(table, cmd)
+    msg = str(e.value)
+    assert "pose [1]" in msg and "pose [0]" not in msg and "pose [2]" not in msg
+    res = jt.forward_solve(table, cmd)
+    assert np.asarray(res.ok).tolist() == [True, False, True]
+
+
+def test_forward_inside_jit_raises_through_error_if(table):
+    cmd = np.full((2, 6), float(table.zero_lengths[0]))
+    cmd[1] = [600.0, 1060.0, 600.0, 1060.0, 600.0, 1060.0]
+    f = eqx.filter_jit(lambda c: jt.forward(table, c))
+    with pytest.raises(Exception, match="forward kinematics failed"):
+        jax.block_until_ready(f(jnp.asarray(cmd)))
+
+
+def test_non_finite_command_is_named(table):
+    cmd = np.full((2, 6), 820.0)
+    cmd[0, 2] = np.inf
+    with pytest.raises(jt.KinematicsError, match=r"pose \[0\]: non-finite length on leg 3"):
+        jt.forward(table, cmd)
+
+
+def test_float64_is_on():
+    assert jax.config.jax_enable_x64
+    assert jt.leg_lengths(jt.reference_table(), np.zeros(6)).dtype == jnp.float64

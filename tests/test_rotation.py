@@ -1,0 +1,60 @@
+import numpy as np
+import pytest
+
+import jaxtable as jt
+
+
+def Rx(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def Ry(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def Rz(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_rotation_is_zyx_composition(seed):
+    phi, theta, psi = np.random.default_rng(seed).uniform(-2, 2, 3)
+    R = np.asarray(jt.rotation_matrix(np.array([phi, theta, psi])))
+    np.testing.assert_allclose(R, Rz(psi) @ Ry(theta) @ Rx(phi), atol=1e-15)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-15)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-14)
+
+
+def test_paper_eq2_typos_are_exactly_three_elements():
+    """The printed eq. (2) differs from Rz Ry Rx at (1,3), (2,2), (2,3) (1-based) only."""
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        angles = rng.uniform(-1.2, 1.2, 3)
+        good = np.asarray(jt.rotation_matrix(angles))
+        printed = np.asarray(jt.paper_rotation_matrix(angles))
+        differs = ~np.isclose(good, printed, atol=1e-12)
+        expected = np.zeros((3, 3), bool)
+        expected[0, 2] = expected[1, 1] = expected[1, 2] = True
+        np.testing.assert_array_equal(differs, expected)
+    # the printed matrix is not a rotation
+    P = np.asarray(jt.paper_rotation_matrix(np.array([0.3, 0.4, 0.5])))
+    assert np.abs(P @ P.T - np.eye(3)).max() > 1e-2
+
+
+def test_euler_rate_matrix_matches_finite_difference():
+    angles = np.array([0.2, -0.4, 0.7])
+    rates = np.array([0.3, -0.1, 0.25])
+    h = 1e-6
+    R = np.asarray(jt.rotation_matrix(angles))
+    Rdot = (
+        np.asarray(jt.rotation_matrix(angles + h * rates))
+        - np.asarray(jt.rotation_matrix(angles - h * rates))
+    ) / (2 * h)
+    W = Rdot @ R.T  # skew(ω)
+    omega = np.array([W[2, 1], W[0, 2], W[1, 0]])
+    E = np.asarray(jt.euler_rate_matrix(angles))
+    np.testing.assert_allclose(E @ rates, omega, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(jt.euler_rate_matrix(np.zeros(3))), np.eye(3))
