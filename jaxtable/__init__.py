@@ -21,12 +21,14 @@ from ._api import (  # noqa: E402
     rod_rotation,
     spiral_extension,
 )
+from ._design import symmetric_table  # noqa: E402
 from ._effects import AbstractEffect, Spiral, default_effects  # noqa: E402
 from ._errors import KinematicsError, TableFileError  # noqa: E402
 from ._forward import ForwardOptions  # noqa: E402
 from ._io import load_table, reference_table, save_table, table_from_dict  # noqa: E402
 from ._rotation import euler_rate_matrix, paper_rotation_matrix, rotation_matrix  # noqa: E402
 from ._table import Table, check_table, replace  # noqa: E402
+from ._workspace import Workspace  # noqa: E402
 
 __all__ = [
     "AbstractEffect",
@@ -36,6 +38,7 @@ __all__ = [
     "Spiral",
     "Table",
     "TableFileError",
+    "Workspace",
     "actuator_command",
     "check_reachable",
     "check_table",
@@ -55,6 +58,7 @@ __all__ = [
     "rotation_matrix",
     "save_table",
     "spiral_extension",
+    "symmetric_table",
     "table_from_dict",
 ]
 __version__ = "0.1.0"

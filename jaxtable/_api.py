@@ -121,7 +121,9 @@ def _check_stroke(table: Table, lengths, batch_shape, name: str) -> None:
                 for k in np.flatnonzero(out[i])
             )
 
-        raise KinematicsError(f"{name} outside the stroke:\n" + describe_rows(out.any(1), batch_shape, what))
+        raise KinematicsError(
+            f"{name} outside the stroke:\n" + describe_rows(out.any(1), batch_shape, what)
+        )
 
 
 @eqx.filter_jit
@@ -252,9 +254,7 @@ def forward(
     if is_concrete(commands):
         check_finite_lengths(commands)
         _check_stroke(table, commands, flat_shape, "commanded leg length(s)")
-    res = forward_solve(
-        table, commands, effects=effects, guess=guess, options=options, chunk=chunk
-    )
+    res = forward_solve(table, commands, effects=effects, guess=guess, options=options, chunk=chunk)
     if is_concrete(res):
         code = np.asarray(res.code).reshape(-1)
         if np.any(code != 0):

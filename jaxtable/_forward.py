@@ -48,9 +48,7 @@ def forward_one(
 
     solver = optx.Newton(options.rtol, options.atol, linear_solver=lx.LU())
     args = (table, effects, s)
-    sol = optx.root_find(
-        fn, solver, guess * scale, args, max_steps=options.max_steps, throw=False
-    )
+    sol = optx.root_find(fn, solver, guess * scale, args, max_steps=options.max_steps, throw=False)
     y = sol.value
     resid = jnp.max(jnp.abs(fn(y, args)))
     return y / scale, sol.result._value, sol.stats["num_steps"], resid

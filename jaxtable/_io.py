@@ -55,12 +55,12 @@ def _hand(doc: dict, where: str) -> np.ndarray:
     value = doc.get("hand", "right")
     values = value if isinstance(value, list) else [value] * 6
     if len(values) != 6:
-        raise TableFileError(f"{where}: 'hand' must be \"right\", \"left\" or 6 of them")
+        raise TableFileError(f'{where}: \'hand\' must be "right", "left" or 6 of them')
     out = []
     for i, h in enumerate(values):
         if h not in ("right", "left"):
             raise TableFileError(
-                f"{where}: 'hand' for leg {i + 1} must be \"right\" or \"left\"; got {h!r}"
+                f'{where}: \'hand\' for leg {i + 1} must be "right" or "left"; got {h!r}'
             )
         out.append(1.0 if h == "right" else -1.0)
     return np.array(out)

@@ -1,7 +1,6 @@
 """The table model: geometry and hardware of a 6-U(RP)U hexapod as an equinox pytree."""
 
 import equinox as eqx
-
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -188,5 +187,3 @@ def replace(table: Table, **changes) -> Table:
         table,
         [_f64(changes[n]) for n in names],
     )
-
-

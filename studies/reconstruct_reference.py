@@ -16,7 +16,6 @@ Run:  python studies/reconstruct_reference.py [--write]
 """
 
 import argparse
-import itertools
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -26,6 +25,7 @@ import optimistix as optx
 import jaxtable as jt
 from jaxtable import _kinematics as kin
 from jaxtable._design import symmetric_table
+from jaxtable._workspace import Workspace
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_DEG = -7.36
@@ -38,9 +38,10 @@ DESIGN = dict(
     base_axis_offset=np.pi / 2,  # radial
     platform_axis_offset=0.0,  # tangential
 )
-# Workspace of an IMU dynamic test table (our choice; the paper states only x = ±200 mm):
-SINGLE_DOF = np.array([200.0, 200.0, 100.0, 15.0, 15.0, 20.0])  # each DOF alone (mm, deg)
-COMBINED = np.array([100.0, 100.0, 50.0, 7.5, 7.5, 10.0])  # all DOF together (box)
+# Workspace of an IMU dynamic test table: our choice (the paper states only x = ±200 mm),
+# jaxtable.Workspace's default: each DOF alone to x, y ±200, z ±100 mm, roll, pitch ±15°,
+# yaw ±20°; all six together within x, y ±100, z ±50 mm, roll, pitch ±7.5°, yaw ±10°.
+WORKSPACE = Workspace()
 
 
 def build(home_height, stroke=(0.0, np.inf), joint_angle_limit=np.inf):
@@ -60,29 +61,14 @@ def fit_home_height(guess=700.0):
         return jnp.rad2deg(kin.rod_rotation(build(h), X_END)[0]) - TARGET_DEG
 
     sol = optx.least_squares(
-        residual, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12), jnp.asarray(guess),
-        max_steps=100, throw=False,
+        residual,
+        optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12),
+        jnp.asarray(guess),
+        max_steps=100,
+        throw=False,
     )
     assert sol.result == optx.RESULTS.successful
     return float(sol.value), int(sol.stats["num_steps"])
-
-
-def to_rad(box):
-    out = np.array(box, dtype=float)
-    out[3:] = np.deg2rad(out[3:])
-    return out
-
-
-def workspace_poses(n_random=20000, seed=0):
-    """Single-DOF sweeps to the full range, plus the combined box (corners + random)."""
-    single = []
-    for k in range(6):
-        p = np.zeros((41, 6))
-        p[:, k] = np.linspace(-1, 1, 41) * to_rad(SINGLE_DOF)[k]
-        single.append(p)
-    corners = np.array(list(itertools.product([-1.0, 0.0, 1.0], repeat=6))) * to_rad(COMBINED)
-    rnd = np.random.default_rng(seed).uniform(-1, 1, (n_random, 6)) * to_rad(COMBINED)
-    return np.concatenate(single + [corners, rnd])
 
 
 def main():
@@ -92,7 +78,7 @@ def main():
 
     h, steps = fit_home_height()
     table = build(h)
-    poses = workspace_poses()
+    poses = np.concatenate([*WORKSPACE.sweeps(), WORKSPACE.box_samples()])
     L = np.asarray(jt.leg_lengths(table, poses))
     bend = np.rad2deg(np.asarray(jt.joint_bend(table, poses)))
     margin = 20.0
@@ -122,12 +108,9 @@ def main():
         f"- passive extension at x = -200 mm, legs 1 / 6: {ext[0, 0]:+.4f} / {ext[0, 5]:+.4f} mm"
         " (paper: 0.26)",
         f"- largest |rotation| on x in [-200, 200]: leg {k + 1} at x = {xs[i]:+.0f} mm",
-        f"- other legs' largest |rotation|: "
+        "- other legs' largest |rotation|: "
         + ", ".join(f"leg {j + 1}: {np.abs(twist[:, j]).max():.2f}" for j in (1, 2, 3, 4)),
-        f"- workspace: each DOF alone to x, y +-{SINGLE_DOF[0]:.0f} mm, z +-{SINGLE_DOF[2]:.0f} mm,"
-        f" roll, pitch +-{SINGLE_DOF[3]:.0f} deg, yaw +-{SINGLE_DOF[5]:.0f} deg; all together within"
-        f" x, y +-{COMBINED[0]:.0f} mm, z +-{COMBINED[2]:.0f} mm, roll, pitch +-{COMBINED[3]} deg,"
-        f" yaw +-{COMBINED[5]:.0f} deg",
+        f"- workspace: {WORKSPACE.describe()}",
         f"- leg lengths over that workspace: {L.min():.1f} .. {L.max():.1f} mm -> stroke"
         f" [{stroke[0]:.0f}, {stroke[1]:.0f}] mm; largest U-joint bend {bend.max():.1f} deg"
         f" (limit {limit:.0f} deg)",
@@ -143,7 +126,7 @@ def main():
             "Chosen so that it reproduces the paper's Fig. 5/6: at x = -200 mm legs 1 and 6 turn\n"
             "7.36 deg in opposite senses (leg 1 clockwise) and extend 0.26 mm; regenerate with\n"
             "`python studies/reconstruct_reference.py --write`. Lengths mm, angles deg.\n"
-            f"Design: base joints on a 700 mm circle, platform joints on a 350 mm circle, pairs\n"
+            "Design: base joints on a 700 mm circle, platform joints on a 350 mm circle, pairs\n"
             "20 deg apart; base U-joint fixed axes radial, platform ones tangential; home height\n"
             "fitted. Workspace: see results/reference_reconstruction.md."
         )

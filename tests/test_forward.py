@@ -71,8 +71,11 @@ def test_s_dependent_effect_uses_newton_inverse(table):
     s = np.asarray(cmd) - np.asarray(table.zero_lengths)
     # the defining equation holds: |l| = L0 + s + spiral + eps s + 0.01 sin(s/5)
     rhs = (
-        np.asarray(table.zero_lengths) + s + np.asarray(jt.spiral_extension(table, poses))
-        + 8.3e-5 * 50 * s + 0.01 * np.sin(s / 5.0)
+        np.asarray(table.zero_lengths)
+        + s
+        + np.asarray(jt.spiral_extension(table, poses))
+        + 8.3e-5 * 50 * s
+        + 0.01 * np.sin(s / 5.0)
     )
     np.testing.assert_allclose(np.asarray(jt.leg_lengths(table, poses)), rhs, atol=1e-10)
     assert_pose_close(jt.forward(table, cmd, effects=eff), poses)
@@ -92,12 +95,14 @@ def test_forward_gradient_matches_finite_differences(table):
         -1,
     )
     np.testing.assert_allclose(J, Jfd, rtol=1e-6, atol=1e-11)
+
     # and equals the inverse of d(actuator length)/d(pose) (implicit function theorem)
     def g(q):
         return kin.leg_lengths(table, q) - kin.spiral_extension(table, q)
 
-    np.testing.assert_allclose(J, np.linalg.inv(np.asarray(jax.jacfwd(g)(jnp.asarray(pose)))),
-                               rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(
+        J, np.linalg.inv(np.asarray(jax.jacfwd(g)(jnp.asarray(pose)))), rtol=1e-9, atol=1e-14
+    )
 
 
 def test_forward_gradient_wrt_table_parameters(table):

@@ -41,8 +41,9 @@ def test_stated_workspace_is_reachable(table):
     """x ±200 mm (the paper's stroke) and the README's workspace: each DOF alone to its range,
     and all six together within the combined box."""
     ranges = np.array([200.0, 200.0, 100.0, np.deg2rad(15), np.deg2rad(15), np.deg2rad(20)])
-    single = np.concatenate([np.outer(np.linspace(-1, 1, 21), np.eye(6)[k] * ranges[k])
-                             for k in range(6)])
+    single = np.concatenate(
+        [np.outer(np.linspace(-1, 1, 21), np.eye(6)[k] * ranges[k]) for k in range(6)]
+    )
     assert np.asarray(jt.reachable(table, single)).all()
     box = np.array([100.0, 100.0, 50.0, np.deg2rad(7.5), np.deg2rad(7.5), np.deg2rad(10)])
     corners = np.array(np.meshgrid(*[[-1, 1]] * 6)).reshape(6, -1).T * box

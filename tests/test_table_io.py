@@ -7,8 +7,17 @@ from jaxtable._io import table_to_toml
 
 def leaves(t):
     names = [
-        "base_joints", "platform_joints", "base_axes", "platform_axes", "zero_lengths",
-        "home_height", "lead", "hand", "stroke", "joint_angle_limit", "platform_mass",
+        "base_joints",
+        "platform_joints",
+        "base_axes",
+        "platform_axes",
+        "zero_lengths",
+        "home_height",
+        "lead",
+        "hand",
+        "stroke",
+        "joint_angle_limit",
+        "platform_mass",
         "platform_cog",
     ]
     return {n: np.asarray(getattr(t, n)) for n in names}
@@ -65,12 +74,21 @@ def _broken(table, tmp_path, old, new):
         ("home_height = ", "height = ", ["missing", "home_height"]),
         ("stroke = ", "strok = ", ["missing", "stroke"]),
         ("name = ", "colour = 1\nname = ", ["unknown", "colour"]),
-        ("    [-0.9848077530122081, -0.17364817766693003, 0.0],", "    [0.0, 0.0, 0.0],",
-         ["base_axes row 1", "zero"]),
-        ("    [-0.9848077530122081, -0.17364817766693003, 0.0],", "    [-0.5, -0.1, 0.0],",
-         ["base_axes row 1", "unit"]),
-        ("    [-0.9848077530122081, -0.17364817766693003, 0.0],", "    [-0.9848, 0.1736],",
-         ["base_axes", "shape"]),
+        (
+            "    [-0.9848077530122081, -0.17364817766693003, 0.0],",
+            "    [0.0, 0.0, 0.0],",
+            ["base_axes row 1", "zero"],
+        ),
+        (
+            "    [-0.9848077530122081, -0.17364817766693003, 0.0],",
+            "    [-0.5, -0.1, 0.0],",
+            ["base_axes row 1", "unit"],
+        ),
+        (
+            "    [-0.9848077530122081, -0.17364817766693003, 0.0],",
+            "    [-0.9848, 0.1736],",
+            ["base_axes", "shape"],
+        ),
         ('hand = "right"', 'hand = "up"', ["hand", "leg 1"]),
         ("lead = 12.7", "lead = 'fast'", ["lead"]),
         ("stroke = [600.0, 1060.0]", "stroke = [900.0, 1060.0]", ["outside the stroke", "leg 1"]),
