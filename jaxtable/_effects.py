@@ -51,6 +51,22 @@ class Spiral(AbstractEffect):
         return self.lead * rod_rotation(table, pose) / (2 * jnp.pi)
 
 
+class LeadScale(AbstractEffect):
+    """Lead (pitch) error proportional to travel: ε_i · s_i, mm.
+
+    `eps`: (6,) dimensionless. The paper's roller screws: 25 µm / 300 mm ≈ 8.3e-5.
+    """
+
+    eps: Float[Array, "6"]
+    depends_on_extension: ClassVar[bool] = True
+
+    def __init__(self, eps=0.0):
+        self.eps = jnp.broadcast_to(jnp.asarray(eps, dtype=jnp.float64), (6,))
+
+    def __call__(self, table, pose, s):
+        return self.eps * s
+
+
 Effects = Mapping[str, AbstractEffect]
 
 

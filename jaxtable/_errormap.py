@@ -1,0 +1,257 @@
+"""Workspace error maps: pose-error standard deviation per error source at every pose of a
+grid, linear propagation of a tolerance budget, evaluated in bounded-memory chunks.
+
+Per pose (one-pose function `budget_one`, batched with vmap):
+- `std` (n_sources + 1, 6): σ of each pose component (x, y, z mm; rotation vector rad) per
+  source, last row the total (sources independent);
+- `bias` (6,): pose error of a controller that does NOT compensate the passive spiral term
+  (linearised: J⁻¹ Δl2; the exact value is within ~1 % of it, see studies/paper_spiral.py);
+- `cond`: condition number of the kinematic Jacobian (angles scaled by the platform radius);
+- `reachable`: legs inside the stroke and U-joints within their bend limit.
+"""
+
+
+import math
+from functools import partial
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from ._batch import map_batch
+from ._errors import POSE_COLUMNS, require_x64
+from ._forward import angle_scale
+from ._kinematics import joint_bend, leg_lengths, spiral_extension
+from ._linalg import cond_small, inv_small
+from ._rotation import euler_rate_matrix
+from ._sensitivity import per_leg_jacobians_one
+from ._table import Table
+from ._tolerance import PARAMETER, SOURCES, Tolerances, budget_effects
+
+BUDGET_WRT = ("base_joints", "platform_joints", "zero_lengths", "lead_scale.eps", "spiral.lead")
+TARGET_MM = 0.2  # the paper's design target: translation error within ±0.2 mm
+
+
+def budget_one(table: Table, sigmas: tuple, pose):
+    """Linear budget at one commanded pose; see the module docstring. `sigmas`: σ per source
+    in model units, ordered as `SOURCES`."""
+    Jq, per_leg = per_leg_jacobians_one(table, budget_effects(table), pose, BUDGET_WRT)
+    # δq = −Jq⁻¹ D δθ with D block-diagonal by leg: column (i, c) of δq/δθ is
+    # −Jq⁻¹[:, i] · d_ic, so σ_q² = σ² Σ_i (Jq⁻¹[:, i])² Σ_c d_ic².
+    Jinv = inv_small(Jq)  # plain jnp: see _linalg on LAPACK deadlocks
+    Jinv = jnp.concatenate([Jinv[:3], euler_rate_matrix(pose[3:]) @ Jinv[3:]])
+    leg_gain = dict(zip(BUDGET_WRT, (jnp.sum(d**2, axis=1) for d in per_leg)))
+    rows = [sigma * jnp.sqrt(Jinv**2 @ leg_gain[PARAMETER[src]])
+            for src, sigma in zip(SOURCES, sigmas)]
+    std = jnp.stack(rows)
+    std = jnp.concatenate([std, jnp.sqrt(jnp.sum(std**2, axis=0))[None]])
+    bias = Jinv @ spiral_extension(table, pose)  # not compensating = an L0 error of Δl2
+    scale = jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / angle_scale(table))])
+    cond = cond_small(Jq * scale)
+    L = leg_lengths(table, pose)
+    bend = jnp.max(joint_bend(table, pose))
+    reach = jnp.all((L >= table.stroke[0]) & (L <= table.stroke[1])) & (
+        bend <= table.joint_angle_limit
+    )
+    return std, bias, cond, reach
+
+
+@eqx.filter_jit
+def _budget_chunk(table, sigmas, poses):
+    return map_batch(partial(budget_one, table, sigmas), poses, chunk=poses.shape[0])
+
+
+class Grid(eqx.Module):
+    """A regular grid over some pose DOF, the others fixed; poses made chunk by chunk so a
+    10⁷-pose grid never exists in memory at once.
+
+    `axes`: indices (0..5) of the gridded DOF; `values`: one 1-D array per axis (mm / rad);
+    `fixed`: (6,) pose for the other DOF.
+    """
+
+    axes: tuple = eqx.field(static=True)
+    values: tuple = eqx.field(static=True)
+    fixed: tuple = eqx.field(static=True)
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(len(v) for v in self.values)
+
+    def __len__(self) -> int:
+        return math.prod(self.shape)
+
+    def poses(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        stop = len(self) if stop is None else min(stop, len(self))
+        idx = np.unravel_index(np.arange(start, stop), self.shape)
+        out = np.tile(np.asarray(self.fixed, dtype=float), (stop - start, 1))
+        for ax, vals, i in zip(self.axes, self.values, idx):
+            out[:, ax] = np.asarray(vals)[i]
+        return out
+
+
+def workspace_slice(dofs=("x", "y"), n=101, ranges=None, fixed=None) -> Grid:
+    """A 2-D (or n-D) slice: `dofs` names from x, y, z, roll, pitch, yaw; `n` points per axis;
+    `ranges` half-ranges in mm / deg (default: the single-DOF workspace ranges);
+    `fixed` the other DOF (mm / deg, default home)."""
+    from ._workspace import Workspace
+
+    axes = []
+    for d in dofs:
+        if d not in POSE_COLUMNS:
+            raise ValueError(f"unknown pose DOF '{d}'; use {', '.join(POSE_COLUMNS)}")
+        axes.append(POSE_COLUMNS.index(d))
+    if len(set(axes)) != len(axes):
+        raise ValueError(f"repeated DOF in slice {dofs}")
+    single = Workspace.to_internal(Workspace().single)
+    if ranges is None:
+        half = [single[a] for a in axes]
+    else:
+        half = [float(r) if a < 3 else math.radians(float(r)) for a, r in zip(axes, ranges)]
+    ns = [n] * len(axes) if np.ndim(n) == 0 else list(n)
+    values = tuple(tuple(np.linspace(-h, h, k)) for h, k in zip(half, ns))
+    fx = tuple(np.zeros(6) if fixed is None else Workspace.to_internal(fixed))
+    return Grid(tuple(axes), values, fx)
+
+
+class ErrorMap(eqx.Module):
+    """Result of `error_map`: per-pose arrays with the grid's shape as leading dims (numpy).
+
+    std (..., n_sources + 1, 6); bias (..., 6); cond (...); reachable (...)."""
+
+    grid: Grid
+    std: np.ndarray
+    bias: np.ndarray
+    cond: np.ndarray
+    reachable: np.ndarray
+
+    def translation(self, compensated: bool = True) -> np.ndarray:
+        """(..., n_sources + 1) RMS translation error per source (mm); with
+        `compensated=False` the total row includes the spiral bias."""
+        t = np.sqrt(np.sum(self.std[..., :3] ** 2, axis=-1))
+        if not compensated:
+            t[..., -1] = np.sqrt(t[..., -1] ** 2 + np.sum(self.bias[..., :3] ** 2, axis=-1))
+        return t
+
+    def rotation(self, compensated: bool = True) -> np.ndarray:
+        """(..., n_sources + 1) RMS rotation error per source (rad)."""
+        r = np.sqrt(np.sum(self.std[..., 3:] ** 2, axis=-1))
+        if not compensated:
+            r[..., -1] = np.sqrt(r[..., -1] ** 2 + np.sum(self.bias[..., 3:] ** 2, axis=-1))
+        return r
+
+    def target_margin(self, compensated: bool = True) -> np.ndarray:
+        """(...,) worst translation component |bias| + 2σ (mm): ≤ 0.2 meets the paper's
+        ±0.2 mm design target at about 95 % confidence per component."""
+        m = 2 * self.std[..., -1, :3]
+        if not compensated:
+            m = m + np.abs(self.bias[..., :3])
+        return m.max(axis=-1)
+
+
+class _Histogram:
+    """Streaming log-binned histogram for percentiles of positive values."""
+
+    def __init__(self, lo=1e-9, hi=1e3, bins=3000):
+        self.edges = np.geomspace(lo, hi, bins + 1)
+        self.counts = np.zeros(bins + 2, dtype=np.int64)
+        self.max = 0.0
+
+    def add(self, x):
+        if x.size:
+            self.counts += np.bincount(np.searchsorted(self.edges, x), minlength=self.counts.size)
+            self.max = max(self.max, float(x.max()))
+
+    def percentile(self, q):
+        c = np.cumsum(self.counts)
+        if c[-1] == 0:
+            return float("nan")
+        k = int(np.searchsorted(c, q / 100 * c[-1]))
+        return float(self.edges[min(max(k, 1), len(self.edges) - 1)])
+
+
+def error_map(
+    table: Table,
+    tolerances: Tolerances = Tolerances(),
+    grid: Grid | None = None,
+    *,
+    keep: bool = True,
+    chunk: int = 8192,
+    progress: bool = False,
+):
+    """Propagate `tolerances` over every pose of `grid` in chunks of `chunk` poses.
+
+    Returns (ErrorMap or None when `keep=False`, summary dict). The summary streams over the
+    reachable poses: for every source and the totals (compensated, uncompensated), the max
+    and 95th percentile of the RMS translation (mm) and rotation (arcsec) error, and the
+    fraction of poses meeting the ±0.2 mm target. Peak memory is one chunk's work plus, with
+    `keep`, the per-pose results (about 100 bytes a pose).
+    """
+    require_x64()
+    grid = workspace_slice() if grid is None else grid
+    sigmas = tuple(tolerances.sigma(s) for s in SOURCES)
+    names = list(SOURCES) + ["total", "total (spiral uncompensated)"]
+    hist_t = {n: _Histogram() for n in names}
+    hist_r = {n: _Histogram() for n in names}
+    n_reach = n_ok_c = n_ok_u = 0
+    cond_max = 0.0
+    out = [] if keep else None
+    n = len(grid)
+    for start in tqdm(range(0, n, chunk), disable=not progress, unit="chunk",
+                      desc=f"error map, {n} poses"):
+        p = grid.poses(start, start + chunk)
+        std, bias, cond, reach = (np.asarray(x) for x in _budget_chunk(
+            table, sigmas, jnp.asarray(_pad(p, chunk))))
+        m = len(p)
+        std, bias, cond, reach = std[:m], bias[:m], cond[:m], reach[:m]
+        if keep:
+            out.append((std.astype(np.float32), bias.astype(np.float32),
+                        cond.astype(np.float32), reach))
+        part = ErrorMap(grid, std[reach], bias[reach], cond[reach], reach[reach])
+        tc, tu = part.translation(True), part.translation(False)
+        rc, ru = part.rotation(True), part.rotation(False)
+        for k, name in enumerate(SOURCES + ("total",)):
+            hist_t[name].add(tc[:, k])
+            hist_r[name].add(rc[:, k] * ARCSEC)
+        hist_t[names[-1]].add(tu[:, -1])
+        hist_r[names[-1]].add(ru[:, -1] * ARCSEC)
+        n_reach += int(reach.sum())
+        n_ok_c += int((part.target_margin(True) <= TARGET_MM).sum())
+        n_ok_u += int((part.target_margin(False) <= TARGET_MM).sum())
+        if reach.any():
+            cond_max = max(cond_max, float(cond[reach].max()))
+    summary = {
+        "poses": n,
+        "reachable": n_reach,
+        "cond_max": cond_max,
+        "target_mm": TARGET_MM,
+        "meets_target_compensated": n_ok_c / max(n_reach, 1),
+        "meets_target_uncompensated": n_ok_u / max(n_reach, 1),
+        "sources": {
+            name: {
+                "trans_max_mm": hist_t[name].max,
+                "trans_p95_mm": hist_t[name].percentile(95),
+                "rot_max_arcsec": hist_r[name].max,
+                "rot_p95_arcsec": hist_r[name].percentile(95),
+            }
+            for name in names
+        },
+    }
+    if not keep:
+        return None, summary
+    cat = [np.concatenate(x) for x in zip(*out)]
+    shp = grid.shape
+    emap = ErrorMap(grid, *(c.reshape(shp + c.shape[1:]) for c in cat))
+    return emap, summary
+
+
+ARCSEC = math.degrees(1.0) * 3600.0
+
+
+def _pad(p: np.ndarray, size: int) -> np.ndarray:
+    """Pad a short last chunk with home poses so every chunk has one compiled shape."""
+    if len(p) == size:
+        return p
+    return np.concatenate([p, np.zeros((size - len(p), 6))])
+
+

@@ -1,0 +1,58 @@
+"""Small dense linear algebra (n ≈ 6) in plain jnp, for batched per-pose kernels.
+
+Why not `jnp.linalg`: on CPU its LAPACK custom calls split a batch over XLA's shared thread
+pool and block until the pieces finish. When one compiled program holds two independent
+LAPACK calls (say an LU and an SVD), both can run at once, each holding a pool thread while it
+waits for the other pieces: on a 2-core machine the program then deadlocks (seen here with
+jax 0.10.2 in about one run in two). These kernels are ordinary fused element-wise code, with
+no custom call; at n = 6 they are as fast.
+"""
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+
+def solve_small(A: Float[Array, "n n"], B: Float[Array, "n k"]) -> Float[Array, "n k"]:
+    """A⁻¹ B by Gaussian elimination with partial pivoting (unrolled over the n columns)."""
+    n = A.shape[0]
+    M = jnp.concatenate([A, B], axis=1)
+    rows = jnp.arange(n)
+    for k in range(n):
+        p = jnp.argmax(jnp.where(rows >= k, jnp.abs(M[:, k]), -1.0))
+        rk, rp = M[k], M[p]
+        M = M.at[k].set(rp).at[p].set(rk)
+        f = jnp.where(rows > k, M[:, k] / M[k, k], 0.0)
+        M = M - f[:, None] * M[k][None, :]
+    X = M[:, n:]
+    for k in range(n - 1, -1, -1):
+        X = X.at[k].set(X[k] / M[k, k])
+        X = X - jnp.where(rows < k, M[:, k], 0.0)[:, None] * X[k][None, :]
+    return X
+
+
+def inv_small(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    return solve_small(A, jnp.eye(A.shape[0], dtype=A.dtype))
+
+
+def largest_eigval_small(S: Float[Array, "n n"], squarings: int = 12) -> Float[Array, ""]:
+    """Largest eigenvalue of a symmetric positive semi-definite matrix: repeated squaring
+    (S^(2^k), normalised by its trace) isolates the dominant eigenvector, whose Rayleigh
+    quotient is the eigenvalue (error quadratic in the eigenvector's, so ~1e-9 relative or
+    better unless the two largest eigenvalues differ by less than ~1 %, where any vector of
+    their span gives the value to that precision anyway)."""
+    M = S
+    for _ in range(squarings):
+        M = M @ M
+        M = M / jnp.trace(M)
+    k = jnp.argmax(jnp.sum(M**2, axis=0))
+    v = M[:, k]
+    return (v @ S @ v) / (v @ v)
+
+
+def cond_small(J: Float[Array, "n n"]) -> Float[Array, ""]:
+    """2-norm condition number σ_max / σ_min of a square matrix, from the extreme
+    eigenvalues of JᵀJ and of its inverse."""
+    S = J.T @ J
+    lmax = largest_eigval_small(S)
+    lmin = 1.0 / largest_eigval_small(inv_small(S))
+    return jnp.sqrt(lmax / lmin)

@@ -1,0 +1,211 @@
+"""Pose sensitivities to model parameters by autodiff, and the paper's analytic eq. (11).
+
+The controller commands the nominal inverse kinematics s(q); the hardware's parameters differ
+from nominal by δθ; the platform then settles at q + δq with, to first order,
+
+    δq = −(∂r/∂q)⁻¹ (∂r/∂θ) δθ,      r(q, θ, s) = |l_i(q; θ)| − L0_i − s_i − Σ effects,
+
+the implicit function theorem applied to the forward map at the commanded pose (the same
+derivative `jax.jacfwd(forward)` gives through the Newton solve; the tests check both, and
+finite differences). Poses are (..., 6); parameters are named leaves of the table or of an
+effect ("base_joints", "zero_lengths", "lead", "spiral.lead", "lead_scale.eps", ...).
+"""
+
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._batch import flatten_batch, map_batch
+from ._effects import Effects, resolve_effects
+from ._errors import check_finite_poses, require_x64
+from ._kinematics import leg_vectors
+from ._model import inverse_extension, length_residual
+from ._rotation import euler_rate_matrix, rotation_matrix
+from ._table import Table
+
+GEOMETRY_42 = ("zero_lengths", "platform_joints", "base_joints")  # the paper's e_p order
+XYZ = "xyz"
+
+
+TABLE_LEAVES = (
+    "base_joints", "platform_joints", "base_axes", "platform_axes", "zero_lengths",
+    "home_height", "lead", "hand",
+)
+
+
+def _get(model, name: str):
+    table, effects = model
+    if "." in name:
+        eff, field = name.split(".", 1)
+        return getattr(effects[eff], field)
+    return getattr(table, name)
+
+
+def check_parameter_names(model, wrt) -> None:
+    """Raise ValueError naming any entry of `wrt` that is not a parameter of `model`."""
+    _, effects = model
+    for name in wrt:
+        if "." in name:
+            eff, field = name.split(".", 1)
+            if eff not in effects:
+                raise ValueError(
+                    f"parameter '{name}': no effect '{eff}' in the model (effects: "
+                    f"{', '.join(sorted(effects)) or 'none'}); pass it in `effects=`"
+                )
+            if not isinstance(getattr(effects[eff], field, None), jax.Array):
+                raise ValueError(f"parameter '{name}': effect '{eff}' has no array field '{field}'")
+        elif name not in TABLE_LEAVES:
+            raise ValueError(
+                f"unknown parameter '{name}': use a table leaf ({', '.join(TABLE_LEAVES)}) or "
+                f"'effect.field'"
+            )
+
+
+def parameter_names(model, wrt) -> list[str]:
+    """Column names of the flattened parameters: legs 1-based, e.g. 'base_joints[2].y'."""
+    names = []
+    for name in wrt:
+        shape = np.shape(_get(model, name))
+        if shape == ():
+            names.append(name)
+        elif len(shape) == 1:
+            names += [f"{name}[{i + 1}]" for i in range(shape[0])]
+        else:
+            names += [f"{name}[{i + 1}].{XYZ[j]}" for i in range(shape[0]) for j in range(shape[1])]
+    return names
+
+
+def _flatten(model, wrt):
+    leaves = [jnp.asarray(_get(model, n), dtype=jnp.float64) for n in wrt]
+    shapes = [x.shape for x in leaves]
+    theta = jnp.concatenate([x.reshape(-1) for x in leaves])
+
+    def unflatten(theta):
+        out, k = [], 0
+        for shp in shapes:
+            n = int(np.prod(shp))
+            out.append(theta[k : k + n].reshape(shp))
+            k += n
+        return eqx.tree_at(lambda m: [_get(m, n) for n in wrt], model, out)
+
+    return theta, unflatten
+
+
+def jacobians_one(table, effects, pose, wrt):
+    """(∂r/∂q (6, 6), ∂r/∂θ (6, P)) at one commanded pose, with s the nominal command.
+    `effects=None`: the table's hardware effects, rebuilt from the (differentiated) table so
+    'lead' and 'hand' have derivatives."""
+    model = (table, {} if effects is None else dict(effects))
+    theta0, unflatten = _flatten(model, wrt)
+
+    def residual(theta, q, s):
+        t, eff = unflatten(theta)
+        return length_residual(t, resolve_effects(t, effects if effects is None else eff), q, s)
+
+    s, _ = inverse_extension(table, resolve_effects(table, effects), pose)
+    Jq = jax.jacfwd(residual, argnums=1)(theta0, pose, s)
+    Jt = jax.jacfwd(residual, argnums=0)(theta0, pose, s)
+    return Jq, Jt
+
+
+def per_leg_jacobians_one(table, effects, pose, wrt):
+    """(∂r/∂q (6, 6), [∂r_i/∂θ_i (6, m) per name]) for per-leg parameters (leaves of shape
+    (6,) or (6, m)), at one commanded pose.
+
+    Leg i's residual depends only on leg i's parameters, so one forward-mode tangent per
+    column of a leaf (perturbing that column on every leg at once) gives all of them: m
+    tangents per leaf instead of 6·m. Row i of the result is ∂r_i/∂θ_i. Same maths as
+    `jacobians_one`, fewer tangents; the tests check they agree."""
+    model = (table, {} if effects is None else dict(effects))
+    leaves = [jnp.asarray(_get(model, n), dtype=jnp.float64) for n in wrt]
+    widths = [1 if x.ndim == 1 else x.shape[1] for x in leaves]
+    offsets = np.cumsum([0] + widths)
+
+    def perturbed(c):
+        new = []
+        for x, w, o in zip(leaves, widths, offsets):
+            d = c[o : o + w]
+            new.append(x + (d[0] if x.ndim == 1 else d[None, :]))
+        return eqx.tree_at(lambda m: [_get(m, n) for n in wrt], model, new)
+
+    def residual(c, q, s):
+        t, eff = perturbed(c)
+        return length_residual(t, resolve_effects(t, effects if effects is None else eff), q, s)
+
+    s, _ = inverse_extension(table, resolve_effects(table, effects), pose)
+    c0 = jnp.zeros(int(offsets[-1]))
+    Jq = jax.jacfwd(residual, argnums=1)(c0, pose, s)
+    Jc = jax.jacfwd(residual, argnums=0)(c0, pose, s)
+    return Jq, [Jc[:, o : o + w] for w, o in zip(widths, offsets)]
+
+
+def sensitivity_one(table, effects, pose, wrt, rotation_vector: bool):
+    """d(actual pose)/dθ at one commanded pose, (6, P): −(∂r/∂q)⁻¹ ∂r/∂θ."""
+    Jq, Jt = jacobians_one(table, effects, pose, wrt)
+    dq = -jnp.linalg.solve(Jq, Jt)
+    if rotation_vector:
+        dq = jnp.concatenate([dq[:3], euler_rate_matrix(pose[3:]) @ dq[3:]])
+    return dq
+
+
+@eqx.filter_jit
+def _sens_flat(table, effects, flat, wrt, rotation_vector, chunk):
+    fn = partial(sensitivity_one, table, effects, wrt=wrt, rotation_vector=rotation_vector)
+    return map_batch(fn, flat, chunk=chunk)
+
+
+def pose_sensitivity(
+    table: Table,
+    poses,
+    wrt=GEOMETRY_42,
+    *,
+    effects: Effects | None = None,
+    rotation_vector: bool = False,
+    chunk: int = 1 << 14,
+) -> tuple[Float[Array, "... 6 P"], list[str]]:
+    """Sensitivity of the actual pose to parameters at commanded `poses` (..., 6).
+
+    Returns (J, names): J (..., 6, P) with rows (x, y, z in mm; then either Euler-angle
+    increments d(roll, pitch, yaw) in rad, or with `rotation_vector=True` the small rotation
+    vector dΩ in the base frame, rad, as the paper's eq. (11) uses), columns the flattened
+    parameters named in `names`. `wrt`: table leaves and/or "effect.field" names; default the
+    paper's 42 geometric parameters in its order [dl (6), da^p (18), db (18)].
+    """
+    require_x64()
+    check_finite_poses(poses)
+    wrt = tuple(wrt)
+    model = (table, {} if effects is None else dict(effects))
+    check_parameter_names(model, wrt)
+    names = parameter_names(model, wrt)
+    flat, batch_shape = flatten_batch(poses, 1)
+    J = _sens_flat(table, None if effects is None else dict(effects), flat, wrt,
+                   rotation_vector, chunk)
+    return J.reshape(batch_shape + J.shape[1:]), names
+
+
+def paper_error_jacobian_one(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6 42"]:
+    """The paper's eq. (11), e = J_lx⁻¹ J_s, at one pose: (6, 42), rows [dt (mm); dΩ (rad,
+    small rotation vector, base frame)], columns [dl_1..6, da_1^p..da_6^p (xyz), db_1..db_6
+    (xyz)]. J_lx rows [u_iᵀ, (R a_i^p × u_i)ᵀ]; J_s rows [1, −u_iᵀR, u_iᵀ] (rigid geometry)."""
+    l = leg_vectors(table, pose)
+    u = l / jnp.linalg.norm(l, axis=-1, keepdims=True)
+    R = rotation_matrix(pose[3:])
+    Ra = table.platform_joints @ R.T
+    J_lx = jnp.concatenate([u, jnp.cross(Ra, u)], axis=1)
+    eye = jnp.eye(6)
+    J_dl = eye
+    J_da = -(eye[:, :, None] * (u @ R)[:, None, :]).reshape(6, 18)
+    J_db = (eye[:, :, None] * u[:, None, :]).reshape(6, 18)
+    J_s = jnp.concatenate([J_dl, J_da, J_db], axis=1)
+    return jnp.linalg.solve(J_lx, J_s)
+
+
+def paper_error_jacobian(table: Table, poses) -> Float[Array, "... 6 42"]:
+    """Batched `paper_error_jacobian_one`: (..., 6) -> (..., 6, 42)."""
+    from ._api import _per_pose
+
+    return _per_pose(paper_error_jacobian_one, table, poses, 1 << 16)
