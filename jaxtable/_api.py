@@ -204,6 +204,7 @@ def forward_solve(
     *,
     effects: Effects | None = None,
     guess=None,
+    nominal: Table | None = None,
     options: ForwardOptions = ForwardOptions(),
     chunk: int = 1 << 16,
 ) -> ForwardResult:
@@ -215,7 +216,7 @@ def forward_solve(
     check_finite_lengths(commands)
     eff = resolve_effects(table, effects)
     flat, batch_shape = flatten_batch(commands, 1)
-    s = flat - table.zero_lengths
+    s = flat - (table if nominal is None else nominal).zero_lengths
     if guess is None:
         g = jnp.zeros_like(flat)
     else:
@@ -236,12 +237,15 @@ def forward(
     *,
     effects: Effects | None = None,
     guess=None,
+    nominal: Table | None = None,
     options: ForwardOptions = ForwardOptions(),
     chunk: int = 1 << 16,
 ) -> Float[Array, "... 6"]:
     """Pose (..., 6) the table reaches for commanded joint-to-joint lengths (..., 6), mm.
 
-    The actuator extension is s_i = command_i − L0_i; the pose q solves
+    The actuator extension is s_i = command_i − L0_i, with L0 of the table the controller
+    believes (`nominal`, default `table` itself: pass the nominal table to move a hardware
+    table that differs from it); the pose q solves
     |l_i(q)| = L0_i + s_i + Σ effects_i(q, s) by Newton (optimistix) from `guess` (default:
     home), with the effects (default: the table's hardware effects, i.e. the passive spiral
     term; `{}` = rigid) inside the solve. Differentiable by implicit differentiation.
@@ -254,7 +258,10 @@ def forward(
     if is_concrete(commands):
         check_finite_lengths(commands)
         _check_stroke(table, commands, flat_shape, "commanded leg length(s)")
-    res = forward_solve(table, commands, effects=effects, guess=guess, options=options, chunk=chunk)
+    res = forward_solve(
+        table, commands, effects=effects, guess=guess, nominal=nominal, options=options,
+        chunk=chunk,
+    )
     if is_concrete(res):
         code = np.asarray(res.code).reshape(-1)
         if np.any(code != 0):
