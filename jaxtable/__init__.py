@@ -22,16 +22,38 @@ from ._api import (  # noqa: E402
     spiral_extension,
 )
 from ._design import symmetric_table  # noqa: E402
-from ._effects import AbstractEffect, Spiral, default_effects  # noqa: E402
+from ._effects import AbstractEffect, LeadScale, Spiral, default_effects  # noqa: E402
+from ._errormap import ErrorMap, Grid, PoseList, error_map, workspace_slice  # noqa: E402
 from ._errors import KinematicsError, TableFileError  # noqa: E402
 from ._forward import ForwardOptions  # noqa: E402
 from ._io import load_table, reference_table, save_table, table_from_dict  # noqa: E402
+from ._montecarlo import monte_carlo  # noqa: E402
 from ._rotation import euler_rate_matrix, paper_rotation_matrix, rotation_matrix  # noqa: E402
+from ._sensitivity import paper_error_jacobian, pose_sensitivity  # noqa: E402
 from ._table import Table, check_table, replace  # noqa: E402
+from ._tolerance import (  # noqa: E402
+    ToleranceFileError,
+    Tolerances,
+    load_tolerances,
+    save_tolerances,
+)
 from ._workspace import Workspace  # noqa: E402
 
 __all__ = [
     "AbstractEffect",
+    "ErrorMap",
+    "Grid",
+    "LeadScale",
+    "PoseList",
+    "ToleranceFileError",
+    "Tolerances",
+    "error_map",
+    "load_tolerances",
+    "monte_carlo",
+    "paper_error_jacobian",
+    "pose_sensitivity",
+    "save_tolerances",
+    "workspace_slice",
     "ForwardOptions",
     "ForwardResult",
     "KinematicsError",

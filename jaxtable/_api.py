@@ -259,7 +259,12 @@ def forward(
         check_finite_lengths(commands)
         _check_stroke(table, commands, flat_shape, "commanded leg length(s)")
     res = forward_solve(
-        table, commands, effects=effects, guess=guess, nominal=nominal, options=options,
+        table,
+        commands,
+        effects=effects,
+        guess=guess,
+        nominal=nominal,
+        options=options,
         chunk=chunk,
     )
     if is_concrete(res):

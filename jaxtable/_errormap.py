@@ -10,8 +10,8 @@ Per pose (one-pose function `budget_one`, batched with vmap):
 - `reachable`: legs inside the stroke and U-joints within their bend limit.
 """
 
-
 import math
+from dataclasses import dataclass
 from functools import partial
 
 import equinox as eqx
@@ -42,8 +42,9 @@ def budget_one(table: Table, sigmas: tuple, pose):
     Jinv = inv_small(Jq)  # plain jnp: see _linalg on LAPACK deadlocks
     Jinv = jnp.concatenate([Jinv[:3], euler_rate_matrix(pose[3:]) @ Jinv[3:]])
     leg_gain = dict(zip(BUDGET_WRT, (jnp.sum(d**2, axis=1) for d in per_leg)))
-    rows = [sigma * jnp.sqrt(Jinv**2 @ leg_gain[PARAMETER[src]])
-            for src, sigma in zip(SOURCES, sigmas)]
+    rows = [
+        sigma * jnp.sqrt(Jinv**2 @ leg_gain[PARAMETER[src]]) for src, sigma in zip(SOURCES, sigmas)
+    ]
     std = jnp.stack(rows)
     std = jnp.concatenate([std, jnp.sqrt(jnp.sum(std**2, axis=0))[None]])
     bias = Jinv @ spiral_extension(table, pose)  # not compensating = an L0 error of Δl2
@@ -62,7 +63,8 @@ def _budget_chunk(table, sigmas, poses):
     return map_batch(partial(budget_one, table, sigmas), poses, chunk=poses.shape[0])
 
 
-class Grid(eqx.Module):
+@dataclass(frozen=True)
+class Grid:
     """A regular grid over some pose DOF, the others fixed; poses made chunk by chunk so a
     10⁷-pose grid never exists in memory at once.
 
@@ -70,9 +72,9 @@ class Grid(eqx.Module):
     `fixed`: (6,) pose for the other DOF.
     """
 
-    axes: tuple = eqx.field(static=True)
-    values: tuple = eqx.field(static=True)
-    fixed: tuple = eqx.field(static=True)
+    axes: tuple
+    values: tuple
+    fixed: tuple
 
     @property
     def shape(self) -> tuple:
@@ -88,6 +90,23 @@ class Grid(eqx.Module):
         for ax, vals, i in zip(self.axes, self.values, idx):
             out[:, ax] = np.asarray(vals)[i]
         return out
+
+
+@dataclass(frozen=True)
+class PoseList:
+    """An explicit list of poses (N, 6) (mm / rad) with the `Grid` interface."""
+
+    array: np.ndarray
+
+    @property
+    def shape(self) -> tuple:
+        return (len(self.array),)
+
+    def __len__(self) -> int:
+        return len(self.array)
+
+    def poses(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        return np.asarray(self.array[start:stop], dtype=float)
 
 
 def workspace_slice(dofs=("x", "y"), n=101, ranges=None, fixed=None) -> Grid:
@@ -114,12 +133,13 @@ def workspace_slice(dofs=("x", "y"), n=101, ranges=None, fixed=None) -> Grid:
     return Grid(tuple(axes), values, fx)
 
 
-class ErrorMap(eqx.Module):
+@dataclass(frozen=True)
+class ErrorMap:
     """Result of `error_map`: per-pose arrays with the grid's shape as leading dims (numpy).
 
     std (..., n_sources + 1, 6); bias (..., 6); cond (...); reachable (...)."""
 
-    grid: Grid
+    grid: "Grid | PoseList"
     std: np.ndarray
     bias: np.ndarray
     cond: np.ndarray
@@ -173,7 +193,7 @@ class _Histogram:
 def error_map(
     table: Table,
     tolerances: Tolerances = Tolerances(),
-    grid: Grid | None = None,
+    grid: "Grid | PoseList | np.ndarray | None" = None,
     *,
     keep: bool = True,
     chunk: int = 8192,
@@ -188,7 +208,10 @@ def error_map(
     `keep`, the per-pose results (about 100 bytes a pose).
     """
     require_x64()
-    grid = workspace_slice() if grid is None else grid
+    if grid is None:
+        grid = workspace_slice()
+    elif not isinstance(grid, (Grid, PoseList)):
+        grid = PoseList(np.asarray(grid, dtype=float).reshape(-1, 6))
     sigmas = tuple(tolerances.sigma(s) for s in SOURCES)
     names = list(SOURCES) + ["total", "total (spiral uncompensated)"]
     hist_t = {n: _Histogram() for n in names}
@@ -197,16 +220,19 @@ def error_map(
     cond_max = 0.0
     out = [] if keep else None
     n = len(grid)
-    for start in tqdm(range(0, n, chunk), disable=not progress, unit="chunk",
-                      desc=f"error map, {n} poses"):
+    for start in tqdm(
+        range(0, n, chunk), disable=not progress, unit="chunk", desc=f"error map, {n} poses"
+    ):
         p = grid.poses(start, start + chunk)
-        std, bias, cond, reach = (np.asarray(x) for x in _budget_chunk(
-            table, sigmas, jnp.asarray(_pad(p, chunk))))
+        std, bias, cond, reach = (
+            np.asarray(x) for x in _budget_chunk(table, sigmas, jnp.asarray(_pad(p, chunk)))
+        )
         m = len(p)
         std, bias, cond, reach = std[:m], bias[:m], cond[:m], reach[:m]
         if keep:
-            out.append((std.astype(np.float32), bias.astype(np.float32),
-                        cond.astype(np.float32), reach))
+            out.append(
+                (std.astype(np.float32), bias.astype(np.float32), cond.astype(np.float32), reach)
+            )
         part = ErrorMap(grid, std[reach], bias[reach], cond[reach], reach[reach])
         tc, tu = part.translation(True), part.translation(False)
         rc, ru = part.rotation(True), part.rotation(False)
@@ -253,5 +279,3 @@ def _pad(p: np.ndarray, size: int) -> np.ndarray:
     if len(p) == size:
         return p
     return np.concatenate([p, np.zeros((size - len(p), 6))])
-
-

@@ -32,8 +32,14 @@ XYZ = "xyz"
 
 
 TABLE_LEAVES = (
-    "base_joints", "platform_joints", "base_axes", "platform_axes", "zero_lengths",
-    "home_height", "lead", "hand",
+    "base_joints",
+    "platform_joints",
+    "base_axes",
+    "platform_axes",
+    "zero_lengths",
+    "home_height",
+    "lead",
+    "hand",
 )
 
 
@@ -182,8 +188,9 @@ def pose_sensitivity(
     check_parameter_names(model, wrt)
     names = parameter_names(model, wrt)
     flat, batch_shape = flatten_batch(poses, 1)
-    J = _sens_flat(table, None if effects is None else dict(effects), flat, wrt,
-                   rotation_vector, chunk)
+    J = _sens_flat(
+        table, None if effects is None else dict(effects), flat, wrt, rotation_vector, chunk
+    )
     return J.reshape(batch_shape + J.shape[1:]), names
 
 

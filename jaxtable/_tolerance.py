@@ -27,8 +27,14 @@ import numpy as np
 
 from ._effects import LeadScale, Spiral
 
-SOURCES = ("base_joints", "platform_joints", "zero_length", "lead_error", "clearance",
-           "spiral_lead")
+SOURCES = (
+    "base_joints",
+    "platform_joints",
+    "zero_length",
+    "lead_error",
+    "clearance",
+    "spiral_lead",
+)
 PARAMETER = {
     "base_joints": "base_joints",
     "platform_joints": "platform_joints",
@@ -143,7 +149,8 @@ def sample_hardware(table, tol: Tolerances, n: int, key):
     nominal = budget_effects(table)
     effects = {
         "spiral": eqx.tree_at(
-            lambda e: e.lead, nominal["spiral"],
+            lambda e: e.lead,
+            nominal["spiral"],
             table.signed_lead + tol.sigma("spiral_lead") * nrm(k[5], (n, 6)),
         ),
         "lead_scale": eqx.tree_at(

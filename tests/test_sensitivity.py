@@ -42,8 +42,12 @@ def test_euler_increments_are_rotation_vector_through_rate_matrix(table, poses):
     Jp = np.asarray(paper_error_jacobian(table, poses))
     for k in range(len(poses)):
         E = np.asarray(jt.euler_rate_matrix(poses[k, 3:]))
-        np.testing.assert_allclose(np.asarray(Je)[k, 3:], np.linalg.solve(E, Jp[k, 3:]),
-                                   rtol=0, atol=1e-12 * np.abs(Jp[k]).max())
+        np.testing.assert_allclose(
+            np.asarray(Je)[k, 3:],
+            np.linalg.solve(E, Jp[k, 3:]),
+            rtol=0,
+            atol=1e-12 * np.abs(Jp[k]).max(),
+        )
     # at zero attitude the two agree (the paper's assumption), elsewhere they differ
     assert np.abs(np.asarray(Je)[0, 3:] - Jp[0, 3:]).max() < 1e-15
     assert np.abs(np.asarray(Je)[5, 3:] - Jp[5, 3:]).max() > 1e-4 * np.abs(Jp[5, 3:]).max()
@@ -57,8 +61,13 @@ def _hardware(table, name, index, h):
 
 @pytest.mark.parametrize(
     "name, index",
-    [("base_joints", (2, 1)), ("platform_joints", (4, 0)), ("zero_lengths", (5,)),
-     ("platform_axes", (0, 2)), ("lead", (3,))],
+    [
+        ("base_joints", (2, 1)),
+        ("platform_joints", (4, 0)),
+        ("zero_lengths", (5,)),
+        ("platform_axes", (0, 2)),
+        ("lead", (3,)),
+    ],
 )
 def test_sensitivity_equals_finite_differences_of_exact_forward(table, name, index):
     """The controller commands the nominal compensated IK; the hardware leaf is off by ±h;
@@ -70,12 +79,14 @@ def test_sensitivity_equals_finite_differences_of_exact_forward(table, name, ind
         f"{name}[{index[0] + 1}]" + ("" if len(index) == 1 else "." + "xyz"[index[1]])
     )
     h = 1e-3 if name != "platform_axes" else 1e-5
+
     def actual(dh):
         return np.asarray(jt.forward(_hardware(table, name, index, dh), cmd, nominal=table))
 
     fd = (actual(h) - actual(-h)) / (2 * h)
-    np.testing.assert_allclose(np.asarray(J)[:, col], fd, rtol=1e-5,
-                               atol=1e-9 * np.abs(fd).max() + 1e-13)
+    np.testing.assert_allclose(
+        np.asarray(J)[:, col], fd, rtol=1e-5, atol=1e-9 * np.abs(fd).max() + 1e-13
+    )
     assert np.abs(fd).max() > 1e-6
 
 
@@ -112,8 +123,9 @@ def test_per_leg_compressed_jacobian_equals_general(table):
 
 def test_effect_parameters_and_unknown_names(table):
     eff = {"spiral": jt.Spiral.from_table(table)}
-    J, names = pose_sensitivity(table, np.array([-200.0, 0, 0, 0, 0, 0]), wrt=("spiral.lead",),
-                                effects=eff)
+    J, names = pose_sensitivity(
+        table, np.array([-200.0, 0, 0, 0, 0, 0]), wrt=("spiral.lead",), effects=eff
+    )
     assert names == [f"spiral.lead[{i}]" for i in range(1, 7)]
     assert np.abs(np.asarray(J)).max() > 1e-3
     with pytest.raises(ValueError, match="unknown parameter 'colour'"):

@@ -71,11 +71,13 @@ def test_linear_identities(table):
 
 def test_linear_matches_monte_carlo_at_paper_tolerances(table):
     """2000 realisations: the standard error of an estimated σ is ~1.6 %; accept 8 %."""
-    poses = np.array([[0.0] * 6, [-200.0, 0, 0, 0, 0, 0],
-                      [100.0, -100.0, -50.0, -0.13, -0.13, 0.17]])
+    poses = np.array(
+        [[0.0] * 6, [-200.0, 0, 0, 0, 0, 0], [100.0, -100.0, -50.0, -0.13, -0.13, 0.17]]
+    )
     err = monte_carlo(table, poses, Tolerances(), 2000, seed=3)
-    lin = np.stack([np.asarray(budget_one(table, sigmas(Tolerances()), jnp.asarray(p))[0][-1])
-                    for p in poses])
+    lin = np.stack(
+        [np.asarray(budget_one(table, sigmas(Tolerances()), jnp.asarray(p))[0][-1]) for p in poses]
+    )
     np.testing.assert_allclose(err.std(0) / lin, 1.0, atol=0.08)
     assert np.all(np.abs(err.mean(0)) < 4 * lin / np.sqrt(2000))  # no bias beyond noise
 
@@ -92,8 +94,14 @@ def test_linear_breaks_down_near_the_singular_low_pose(table):
     err = monte_carlo(table, pose, Tolerances(), 4000, seed=1)[:, 0, 2]
     assert err.mean() < -0.1 * lin_z  # ≈ 10 standard errors off the linear zero mean
     assert np.sqrt((err**2).mean()) > 1.04 * lin_z
-    lower = monte_carlo(table, np.array([[0.0, 0, -655.0, 0, 0, 0]]), Tolerances(), 4000,
-                        seed=1, allow_failures=True)
+    lower = monte_carlo(
+        table,
+        np.array([[0.0, 0, -655.0, 0, 0, 0]]),
+        Tolerances(),
+        4000,
+        seed=1,
+        allow_failures=True,
+    )
     assert np.isnan(lower[:, 0, 0]).mean() > 0.01
     with pytest.raises(RuntimeError, match="Monte Carlo solves failed"):
         monte_carlo(table, np.array([[0.0, 0, -655.0, 0, 0, 0]]), Tolerances(), 4000, seed=1)
