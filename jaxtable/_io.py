@@ -104,6 +104,17 @@ def table_from_dict(doc: dict, where: str = "table") -> Table:
     return table
 
 
+def read_toml(path: Path, error: type[Exception], kind: str) -> dict:
+    """Parse a TOML file; a missing file or bad TOML raises `error` naming the file."""
+    try:
+        with Path(path).open("rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise error(f"{kind} file not found: {path}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise error(f"{path}: not valid TOML: {e}") from None
+
+
 def load_table(path) -> Table:
     """Read a table file (TOML, DESIGN.md schema) and validate it.
 
@@ -112,14 +123,7 @@ def load_table(path) -> Table:
     a home pose outside the stroke.
     """
     path = Path(path)
-    try:
-        with path.open("rb") as f:
-            doc = tomllib.load(f)
-    except FileNotFoundError:
-        raise TableFileError(f"table file not found: {path}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise TableFileError(f"{path}: not valid TOML: {e}") from None
-    return table_from_dict(doc, where=str(path))
+    return table_from_dict(read_toml(path, TableFileError, "table"), where=str(path))
 
 
 def reference_table() -> Table:

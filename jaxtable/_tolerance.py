@@ -17,7 +17,6 @@ Pose errors are reported as translation (mm) and the small rotation vector (rad,
 so a rotation error is an angle whatever the attitude.
 """
 
-import tomllib
 from pathlib import Path
 
 import equinox as eqx
@@ -26,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._effects import LeadScale, Spiral
+from ._io import read_toml
 
 SOURCES = (
     "base_joints",
@@ -105,15 +105,7 @@ def tolerances_from_dict(doc: dict, where: str = "tolerances") -> Tolerances:
 
 def load_tolerances(path) -> Tolerances:
     """Read a tolerance file: TOML with any of the keys of `SOURCES` (missing = default)."""
-    path = Path(path)
-    try:
-        with path.open("rb") as f:
-            doc = tomllib.load(f)
-    except FileNotFoundError:
-        raise ToleranceFileError(f"tolerance file not found: {path}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ToleranceFileError(f"{path}: not valid TOML: {e}") from None
-    return tolerances_from_dict(doc, str(path))
+    return tolerances_from_dict(read_toml(path, ToleranceFileError, "tolerance"), str(path))
 
 
 def save_tolerances(tol: Tolerances, path) -> None:
