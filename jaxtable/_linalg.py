@@ -12,22 +12,39 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 
-def solve_small(A: Float[Array, "n n"], B: Float[Array, "n k"]) -> Float[Array, "n k"]:
-    """A⁻¹ B by Gaussian elimination with partial pivoting (unrolled over the n columns)."""
+def lu_small(A: Float[Array, "n n"]):
+    """PA = LU with partial pivoting, unrolled over the n columns. Returns (LU, perm): the
+    unit-lower multipliers below the diagonal, U on and above it; `perm` the row order."""
     n = A.shape[0]
-    M = jnp.concatenate([A, B], axis=1)
     rows = jnp.arange(n)
+    perm = rows
+    M = jnp.asarray(A)
     for k in range(n):
         p = jnp.argmax(jnp.where(rows >= k, jnp.abs(M[:, k]), -1.0))
-        rk, rp = M[k], M[p]
-        M = M.at[k].set(rp).at[p].set(rk)
+        M = M.at[k].set(M[p]).at[p].set(M[k])
+        perm = perm.at[k].set(perm[p]).at[p].set(perm[k])
         f = jnp.where(rows > k, M[:, k] / M[k, k], 0.0)
-        M = M - f[:, None] * M[k][None, :]
-    X = M[:, n:]
+        M = M - f[:, None] * jnp.where(jnp.arange(n) > k, M[k], 0.0)[None, :]
+        M = M.at[:, k].set(jnp.where(rows > k, f, M[:, k]))
+    return M, perm
+
+
+def lu_solve_small(LU, perm, B: Float[Array, "n k"]) -> Float[Array, "n k"]:
+    """Solve A X = B from `lu_small(A)`; linear in B (so it transposes for reverse mode)."""
+    n = LU.shape[0]
+    rows = jnp.arange(n)
+    X = B[perm]
+    for k in range(n):
+        X = X - jnp.where(rows > k, LU[:, k], 0.0)[:, None] * X[k][None, :]
     for k in range(n - 1, -1, -1):
-        X = X.at[k].set(X[k] / M[k, k])
-        X = X - jnp.where(rows < k, M[:, k], 0.0)[:, None] * X[k][None, :]
+        X = X.at[k].set(X[k] / LU[k, k])
+        X = X - jnp.where(rows < k, LU[:, k], 0.0)[:, None] * X[k][None, :]
     return X
+
+
+def solve_small(A: Float[Array, "n n"], B: Float[Array, "n k"]) -> Float[Array, "n k"]:
+    """A⁻¹ B by Gaussian elimination with partial pivoting."""
+    return lu_solve_small(*lu_small(A), B)
 
 
 def inv_small(A: Float[Array, "n n"]) -> Float[Array, "n n"]:

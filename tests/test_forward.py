@@ -196,3 +196,21 @@ def test_non_finite_command_is_named(table):
 def test_float64_is_on():
     assert jax.config.jax_enable_x64
     assert jt.leg_lengths(jt.reference_table(), np.zeros(6)).dtype == jnp.float64
+
+
+def test_reverse_mode_through_forward(table):
+    """jax.grad (reverse mode) through the solve = forward-mode jacobian."""
+    pose = np.array([-150.0, 40.0, 10.0, 0.05, -0.03, 0.08])
+    cmd = jt.actuator_command(table, pose, compensate=False)
+
+    def f(lead):
+        return jnp.sum(jt.forward(jt.replace(table, lead=lead), cmd) * jnp.arange(1.0, 7.0))
+
+    g = np.asarray(jax.grad(f)(table.lead))
+    np.testing.assert_allclose(g, np.asarray(jax.jacfwd(f)(table.lead)), rtol=1e-10)
+    assert np.abs(g).max() > 1e-3
+
+
+def test_failed_solve_returns_guess_not_nan(table):
+    res = jt.forward_solve(table, np.array([[600.0, 1060.0, 600.0, 1060.0, 600.0, 1060.0]]))
+    assert not bool(res.ok[0]) and np.all(np.isfinite(np.asarray(res.pose)))

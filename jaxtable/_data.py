@@ -1,0 +1,229 @@
+"""Measurement files (CSV, one row per stop, rows in the order the table moved).
+
+Schema (DESIGN.md): `cmd_x … cmd_yaw` commanded pose (mm / deg, required); `cmd_l1 … cmd_l6`
+commanded joint-to-joint lengths (optional); `x, y, z, roll, pitch, yaw` measured pose (any
+subset; empty or NaN = not measured); `sigma_<column>` per-row standard deviation (optional);
+`temperature` (°C), `payload` (kg), `session` (label) optional. Unknown columns are kept and
+written back unchanged. Angles are degrees in the file and radians in memory.
+"""
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import POSE_COLUMNS
+
+CMD = tuple(f"cmd_{c}" for c in POSE_COLUMNS)
+CMD_L = tuple(f"cmd_l{i}" for i in range(1, 7))
+MEASURED = POSE_COLUMNS
+SIGMA = tuple(f"sigma_{c}" for c in POSE_COLUMNS)
+OPTIONAL = ("temperature", "payload")
+
+
+class DataFileError(ValueError):
+    """A measurement file is malformed; the message names the row and column."""
+
+
+def _to_internal(a: np.ndarray) -> np.ndarray:
+    out = np.array(a, dtype=float)
+    out[..., 3:] = np.deg2rad(out[..., 3:])
+    return out
+
+
+def _to_file(a: np.ndarray) -> np.ndarray:
+    out = np.array(a, dtype=float)
+    out[..., 3:] = np.rad2deg(out[..., 3:])
+    return out
+
+
+@dataclass
+class Measurements:
+    """Measured stops, in row order. Poses in mm / rad.
+
+    - `cmd_pose` (N, 6) commanded pose; `cmd_lengths` (N, 6) commanded joint-to-joint lengths
+      or None (then the controller's inverse kinematics gives them);
+    - `measured` (N, 6) measured pose columns, NaN where not measured (a laser
+      interferometer along x fills column 0 only);
+    - `sigma` (N, 6) standard deviations or None (then the instrument's nominal σ);
+    - `temperature`, `payload` (N,) or None; `session` (N,) labels (default all "1");
+    - `extra`: unknown columns, kept as strings and written back.
+    """
+
+    cmd_pose: np.ndarray
+    measured: np.ndarray
+    cmd_lengths: np.ndarray | None = None
+    sigma: np.ndarray | None = None
+    temperature: np.ndarray | None = None
+    payload: np.ndarray | None = None
+    session: np.ndarray | None = None
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        n = len(self.cmd_pose)
+        if self.session is None:
+            self.session = np.array(["1"] * n)
+        self.session = np.asarray(self.session).astype(str)
+
+    def __len__(self) -> int:
+        return len(self.cmd_pose)
+
+    @property
+    def measured_columns(self) -> list[str]:
+        return [c for k, c in enumerate(MEASURED) if np.any(np.isfinite(self.measured[:, k]))]
+
+    @property
+    def sessions(self) -> list[str]:
+        """Session labels in order of first appearance."""
+        return list(dict.fromkeys(self.session.tolist()))
+
+    @property
+    def session_index(self) -> np.ndarray:
+        order = {s: k for k, s in enumerate(self.sessions)}
+        return np.array([order[s] for s in self.session])
+
+    @property
+    def direction(self) -> np.ndarray:
+        """(N, 6) ±1: +1 if the leg last moved out (extending), −1 if in, from the row order
+        of the commanded lengths (first row +1; a leg that did not move keeps its sign)."""
+        if self.cmd_lengths is None:
+            raise ValueError("direction needs the commanded lengths (cmd_l1..6)")
+        d = np.sign(np.diff(self.cmd_lengths, axis=0))
+        d = np.concatenate([np.ones((1, 6)), d])
+        rows = np.arange(len(d))[:, None]
+        last = np.maximum.accumulate(np.where(d != 0, rows, 0), axis=0)  # last move's row
+        return np.take_along_axis(d, last, axis=0)
+
+    def subset(self, rows) -> "Measurements":
+        rows = np.asarray(rows)
+
+        def take(a):
+            return None if a is None else np.asarray(a)[rows]
+
+        return Measurements(
+            self.cmd_pose[rows],
+            self.measured[rows],
+            take(self.cmd_lengths),
+            take(self.sigma),
+            take(self.temperature),
+            take(self.payload),
+            take(self.session),
+            {k: take(v) for k, v in self.extra.items()},
+        )
+
+
+def _cell(value: str, row: int, col: str, path, required: bool) -> float:
+    v = value.strip()
+    if v == "" or v.lower() == "nan":
+        if required:
+            raise DataFileError(f"{path}: row {row}, column '{col}': missing value (required)")
+        return math.nan
+    try:
+        x = float(v)
+    except ValueError:
+        raise DataFileError(
+            f"{path}: row {row}, column '{col}': '{value}' is not a number"
+        ) from None
+    if not math.isfinite(x) and required:
+        raise DataFileError(f"{path}: row {row}, column '{col}': non-finite value '{value}'")
+    return x
+
+
+def load_measurements(path) -> Measurements:
+    """Read and validate a measurement CSV. Rows are numbered from 1 (the first data row,
+    the line after the header). Refuses, naming row and column: a missing commanded value, a
+    non-numeric cell in a known numeric column, a negative σ; and a file with no measured
+    column or no commanded-pose columns. Nothing is dropped; unknown columns are kept."""
+    path = Path(path)
+    try:
+        with path.open(newline="") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            rows = list(reader)
+    except FileNotFoundError:
+        raise DataFileError(f"measurement file not found: {path}") from None
+    if not header:
+        raise DataFileError(f"{path}: empty file (no header)")
+    header = [h.strip() for h in header]
+    dup = {h for h in header if header.count(h) > 1}
+    if dup:
+        raise DataFileError(f"{path}: repeated column(s) {', '.join(sorted(dup))}")
+    missing = [c for c in CMD if c not in header]
+    if missing:
+        raise DataFileError(f"{path}: missing commanded-pose column(s) {', '.join(missing)}")
+    if not any(c in header for c in MEASURED):
+        raise DataFileError(
+            f"{path}: no measured column: need at least one of {', '.join(MEASURED)}"
+        )
+    if not rows:
+        raise DataFileError(f"{path}: no data rows")
+    lengths = [c for c in CMD_L if c in header]
+    if lengths and len(lengths) != 6:
+        raise DataFileError(
+            f"{path}: commanded lengths need all of cmd_l1..cmd_l6; found {', '.join(lengths)}"
+        )
+    col = {h: k for k, h in enumerate(header)}
+    n = len(rows)
+    for r, row in enumerate(rows, start=1):
+        if len(row) != len(header):
+            raise DataFileError(
+                f"{path}: row {r} has {len(row)} cells, the header has {len(header)}"
+            )
+
+    def numeric(name, required):
+        return np.array([_cell(rows[r][col[name]], r + 1, name, path, required) for r in range(n)])
+
+    def block(names, required):
+        return np.stack(
+            [numeric(c, required) if c in col else np.full(n, np.nan) for c in names], axis=1
+        )
+
+    cmd = _to_internal(block(CMD, True))
+    measured = _to_internal(block(MEASURED, False))
+    cmd_l = block(CMD_L, True) if lengths else None
+    sigma = None
+    if any(c in col for c in SIGMA):
+        sigma = _to_internal(block(SIGMA, False))
+        neg = np.argwhere(sigma < 0)
+        if len(neg):
+            r, c = neg[0]
+            raise DataFileError(f"{path}: row {r + 1}, column '{SIGMA[c]}': negative σ")
+    opt = {c: numeric(c, False) if c in col else None for c in OPTIONAL}
+    session = (
+        np.array([rows[r][col["session"]].strip() or "1" for r in range(n)])
+        if "session" in col
+        else None
+    )
+    known = set(CMD + CMD_L + MEASURED + SIGMA + OPTIONAL + ("session",))
+    extra = {h: np.array([rows[r][col[h]] for r in range(n)]) for h in header if h not in known}
+    return Measurements(
+        cmd, measured, cmd_l, sigma, opt["temperature"], opt["payload"], session, extra
+    )
+
+
+def save_measurements(m: Measurements, path) -> None:
+    """Write `m` as CSV (DESIGN.md schema; angles in degrees; floats written exactly)."""
+    cols, data = list(CMD), [_to_file(m.cmd_pose)]
+    if m.cmd_lengths is not None:
+        cols += CMD_L
+        data.append(m.cmd_lengths)
+    meas = [k for k in range(6) if np.any(np.isfinite(m.measured[:, k]))]
+    cols += [MEASURED[k] for k in meas]
+    data.append(_to_file(m.measured)[:, meas])
+    if m.sigma is not None:
+        cols += [SIGMA[k] for k in meas]
+        data.append(_to_file(m.sigma)[:, meas])
+    for name in OPTIONAL:
+        v = getattr(m, name)
+        if v is not None:
+            cols.append(name)
+            data.append(np.asarray(v, float)[:, None])
+    table = np.concatenate(data, axis=1)
+    with Path(path).open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(cols + ["session"] + list(m.extra))
+        for i in range(len(m)):
+            cells = ["" if not np.isfinite(v) else repr(float(v)) for v in table[i]]
+            w.writerow(cells + [m.session[i]] + [m.extra[k][i] for k in m.extra])

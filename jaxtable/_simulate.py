@@ -1,0 +1,120 @@
+"""Simulate a real table and its instrument: a "true" table (the nominal one plus sampled
+geometric errors and chosen effects), a controller that commands the nominal inverse
+kinematics, exact forward kinematics of the true table, and a noisy instrument."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._api import actuator_command, forward
+from ._data import Measurements
+from ._instrument import Instrument, observe
+from ._table import Table, replace
+from ._workspace import Workspace
+
+# --- pose plans (mm / rad, (N, 6)) ---------------------------------------------------------
+
+
+def plan_x_line(step: float = 25.0, half: float = 200.0) -> np.ndarray:
+    """The paper's Fig. 9 experiment: x from −half to +half every `step` mm."""
+    xs = np.arange(-half, half + step / 2, step)
+    p = np.zeros((len(xs), 6))
+    p[:, 0] = xs
+    return p
+
+
+def plan_random(n: int, seed: int = 0, workspace: Workspace = Workspace()) -> np.ndarray:
+    """`n` poses uniform in the workspace's combined-motion box."""
+    box = Workspace.to_internal(workspace.combined)
+    return np.random.default_rng(seed).uniform(-1, 1, (n, 6)) * box
+
+
+def plan_grid(n: int = 3, workspace: Workspace = Workspace()) -> np.ndarray:
+    """A full 6-D grid of `n` levels per DOF over the combined box (n^6 poses)."""
+    box = Workspace.to_internal(workspace.combined)
+    levels = np.linspace(-1, 1, n)
+    g = np.stack(np.meshgrid(*[levels] * 6, indexing="ij"), -1).reshape(-1, 6)
+    return g * box
+
+
+def plan_swing(
+    dof: str = "roll", amplitude: float = 5.0, cycles: float = 2.0, points: int = 80
+) -> np.ndarray:
+    """A sinusoidal swing of one DOF as an IMU test uses: `amplitude` in mm or deg."""
+    from ._errors import POSE_COLUMNS
+
+    k = POSE_COLUMNS.index(dof)
+    a = amplitude if k < 3 else np.deg2rad(amplitude)
+    p = np.zeros((points, 6))
+    p[:, k] = a * np.sin(2 * np.pi * cycles * np.arange(points) / points)
+    return p
+
+
+PLANS = {"x_line": plan_x_line, "random": plan_random, "grid": plan_grid, "swing": plan_swing}
+
+# --- the true table -------------------------------------------------------------------------
+
+
+def perturb_table(
+    table: Table, seed: int = 0, joint_sigma: float = 0.010, zero_sigma: float = 0.050
+) -> Table:
+    """A hardware realisation: joint centres (each coordinate) and L0 off by normal errors."""
+    rng = np.random.default_rng(seed)
+    return replace(
+        table,
+        base_joints=np.asarray(table.base_joints) + joint_sigma * rng.normal(size=(6, 3)),
+        platform_joints=np.asarray(table.platform_joints) + joint_sigma * rng.normal(size=(6, 3)),
+        zero_lengths=np.asarray(table.zero_lengths) + zero_sigma * rng.normal(size=6),
+    )
+
+
+def simulate(
+    nominal: Table,
+    true: Table,
+    poses,
+    instrument: Instrument,
+    *,
+    effects=None,
+    compensate: bool = True,
+    frame=(0, 0, 0, 0, 0, 0),
+    target=(0, 0, 0, 0, 0, 0),
+    session: str = "1",
+    seed: int = 0,
+) -> Measurements:
+    """Measurements of the `true` table driven by a controller that believes `nominal`.
+
+    The controller commands `actuator_command(nominal, poses, compensate)`; the true table
+    (with `effects`, default its own hardware effects: the spiral term) settles at the exact
+    forward-kinematics pose; the instrument (`frame`, `target`: mm / rad) reads it with its
+    noise. Returns the rows with commanded lengths, the instrument's columns and its σ.
+    """
+    poses = np.asarray(poses, dtype=float)
+    cmd = np.asarray(actuator_command(nominal, poses, compensate))
+    actual = forward(true, cmd, effects=effects, nominal=nominal, guess=poses)
+    frame = jnp.asarray(frame, dtype=jnp.float64)
+    target = jnp.asarray(target, dtype=jnp.float64)
+    reading = np.asarray(jax.vmap(lambda q: observe(q, frame, target))(actual))
+    noise = np.nan_to_num(np.asarray(instrument.noise, float))
+    reading = reading + noise * np.random.default_rng(seed).normal(size=reading.shape)
+    mask = instrument.mask
+    measured = np.where(mask, reading, np.nan)
+    sigma = np.where(mask, np.asarray(instrument.noise, float), np.nan) * np.ones_like(measured)
+    return Measurements(poses, measured, cmd, sigma, session=np.array([session] * len(poses)))
+
+
+def concat(*parts: Measurements) -> Measurements:
+    """Rows of several measurement sets, in order (e.g. two sessions)."""
+
+    def cat(name):
+        vals = [getattr(p, name) for p in parts]
+        return None if any(v is None for v in vals) else np.concatenate(vals)
+
+    return Measurements(
+        cat("cmd_pose"),
+        cat("measured"),
+        cat("cmd_lengths"),
+        cat("sigma"),
+        cat("temperature"),
+        cat("payload"),
+        cat("session"),
+    )

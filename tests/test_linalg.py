@@ -1,0 +1,28 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtable._linalg import cond_small, inv_small, solve_small
+
+
+def test_small_kernels_match_numpy():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        A = rng.normal(size=(6, 6))
+        B = rng.normal(size=(6, 4))
+        np.testing.assert_allclose(
+            np.asarray(solve_small(A, B)), np.linalg.solve(A, B), rtol=1e-10, atol=1e-12
+        )
+        np.testing.assert_allclose(np.asarray(inv_small(A)) @ A, np.eye(6), atol=1e-10)
+        assert abs(float(cond_small(A)) / np.linalg.cond(A) - 1) < 1e-8
+    # a pivot is needed: zero leading entry
+    A = np.array([[0.0, 1.0], [1.0, 0.0]])
+    np.testing.assert_allclose(np.asarray(solve_small(A, np.eye(2))), A)
+
+
+def test_solve_is_linear_in_b_for_reverse_mode():
+    A = jnp.asarray(np.random.default_rng(1).normal(size=(6, 6)))
+    b = jnp.arange(6.0)
+    g = jax.grad(lambda v: jnp.sum(solve_small(A, v[:, None]) ** 2))(b)
+    x = np.linalg.solve(np.asarray(A), np.asarray(b))
+    np.testing.assert_allclose(np.asarray(g), 2 * np.linalg.solve(np.asarray(A).T, x), rtol=1e-10)
