@@ -142,6 +142,9 @@ def _residual(theta, args):
     return (diff * problem.weight).reshape(-1)
 
 
+_residual_jit = eqx.filter_jit(_residual)
+
+
 @eqx.filter_jit
 def _solve(problem, layout, theta0, rtol, atol, max_steps):
     """LM in Jacobi-scaled variables u (θ = θ0 + D u, D = 1 / column norms of the Jacobian at
@@ -230,6 +233,8 @@ class Calibration:
     steps: int
     layout: Layout
     bases: dict = field(default_factory=dict)
+    theta: dict = field(default_factory=dict)
+    effects_nominal: dict = field(default_factory=dict)
 
     def report(self) -> str:
         lines = [
@@ -282,6 +287,62 @@ def _names(layout: Layout, theta0) -> list:
     return out
 
 
+def make_problem(nominal: Table, data: Measurements, effects, bases, compensated=True):
+    """Arrays of a calibration problem; refuses commands outside the stroke (row, leg named)
+    and measured values without a positive σ."""
+    mask = np.isfinite(data.measured)
+    cmd = (
+        data.cmd_lengths
+        if data.cmd_lengths is not None
+        else np.asarray(
+            actuator_command(nominal, data.cmd_pose, compensate=compensated, check=False)
+        )
+    )
+    lo, hi = (float(v) for v in np.asarray(nominal.stroke))
+    bad = np.argwhere((cmd < lo) | (cmd > hi) | ~np.isfinite(cmd))
+    if len(bad):
+        r, leg = bad[0]
+        raise ValueError(
+            f"row {r + 1}: commanded length of leg {leg + 1} ({cmd[r, leg]:.3f} mm) is outside "
+            f"the stroke [{lo}, {hi}]" + (f" ({len(bad)} such cells)" if len(bad) > 1 else "")
+        )
+    sigma = data.sigma if data.sigma is not None else np.full(data.measured.shape, np.nan)
+    bad = np.argwhere(mask & ~(sigma > 0))
+    if len(bad):
+        r, c = bad[0]
+        raise ValueError(
+            f"row {r + 1}, column '{'x y z roll pitch yaw'.split()[c]}': measured "
+            f"value without a positive σ (sigma_ column)"
+        )
+    return Problem(
+        nominal=nominal,
+        start=nominal,
+        effects=effects,
+        s=jnp.asarray(cmd - np.asarray(nominal.zero_lengths)),
+        guess=jnp.asarray(data.cmd_pose),
+        measured=jnp.asarray(np.where(mask, data.measured, 0.0)),
+        weight=jnp.asarray(np.where(mask, 1.0 / np.where(mask, sigma, 1.0), 0.0)),
+        session=jnp.asarray(data.session_index),
+        bases={n: jnp.asarray(b) for n, b in bases.items()},
+    )
+
+
+def validate(cal: "Calibration", nominal: Table, data: Measurements, compensated=True) -> dict:
+    """RMS residual per measured column (mm / rad) of the calibrated model on `data` (e.g.
+    held-out poses), in the calibration's instrument frames (sessions matched by order of
+    first appearance)."""
+    problem = make_problem(nominal, data, cal.effects_nominal, cal.bases, compensated)
+    res = np.asarray(_residual_jit(cal.theta, (problem, cal.layout))).reshape(-1, 6)
+    mask = np.isfinite(data.measured)
+    w = np.asarray(problem.weight)
+    phys = np.where(mask, res / np.where(mask, w, 1.0), np.nan)
+    return {
+        c: float(np.sqrt(np.nanmean(phys[:, k] ** 2)))
+        for k, c in enumerate("x y z roll pitch yaw".split())
+        if mask[:, k].any()
+    }
+
+
 def calibrate(
     nominal: Table,
     data: Measurements,
@@ -307,6 +368,8 @@ def calibrate(
     `identifiability_tol` × the largest are reported as unidentifiable and get std = inf.
     """
     free = tuple(free)
+    if not np.isfinite(data.measured).any():
+        raise ValueError("no measured values in the data")
     mask = np.isfinite(data.measured)
     col_mask = mask.any(0)
     frame_dofs, target_dofs = _nuisance_dofs(col_mask) if estimate_frame else ((), ())
@@ -321,25 +384,7 @@ def calibrate(
         n: (complement_basis(np.asarray(getattr(nominal, n))) if n in gauge else np.eye(18))
         for n in JOINTS
     }
-    cmd = (
-        data.cmd_lengths
-        if data.cmd_lengths is not None
-        else np.asarray(actuator_command(nominal, data.cmd_pose, compensate=compensated))
-    )
-    sigma = data.sigma if data.sigma is not None else np.ones_like(data.measured)
-    if np.any(mask & ~(sigma > 0)):
-        raise ValueError("every measured value needs a positive σ (sigma_<column>)")
-    problem = Problem(
-        nominal=nominal,
-        start=nominal,
-        effects=eff,
-        s=jnp.asarray(cmd - np.asarray(nominal.zero_lengths)),
-        guess=jnp.asarray(data.cmd_pose),
-        measured=jnp.asarray(np.where(mask, data.measured, 0.0)),
-        weight=jnp.asarray(np.where(mask, 1.0 / np.where(mask, sigma, 1.0), 0.0)),
-        session=jnp.asarray(data.session_index),
-        bases={n: jnp.asarray(b) for n, b in bases.items()},
-    )
+    problem = make_problem(nominal, data, eff, bases, compensated)
     theta0 = {}
     for name in free:
         if name in JOINTS:
@@ -356,7 +401,7 @@ def calibrate(
     if target_dofs:
         theta0["target"] = jnp.zeros(len(target_dofs))
 
-    before = np.asarray(_residual(theta0, (problem, layout))).reshape(-1, 6)
+    before = np.asarray(_residual_jit(theta0, (problem, layout))).reshape(-1, 6)
     value, code, steps, J, codes = _solve(problem, layout, theta0, rtol, atol, max_steps)
     if np.any(np.asarray(codes) != 0):
         bad = np.flatnonzero(np.asarray(codes) != 0)
@@ -364,7 +409,7 @@ def calibrate(
             f"forward kinematics failed at the fitted parameters for row(s) "
             f"{(bad + 1).tolist()[:10]}"
         )
-    after = np.asarray(_residual(value, (problem, layout))).reshape(-1, 6)
+    after = np.asarray(_residual_jit(value, (problem, layout))).reshape(-1, 6)
     J = np.asarray(J)
     flat, _ = ravel_pytree(value)
     names = _names(layout, theta0)
@@ -389,7 +434,7 @@ def calibrate(
         corr = cov / np.outer(np.sqrt(np.diag(cov)), np.sqrt(np.diag(cov)))
     table, effects_fit, frame, target = _build(problem, layout, value)
     cols = [c for k, c in enumerate("x y z roll pitch yaw".split()) if col_mask[k]]
-    sig = np.where(mask, sigma, np.nan)
+    sig = np.where(mask, 1.0 / np.where(mask, np.asarray(problem.weight), 1.0), np.nan)
 
     def rms(res):
         r = res * sig  # back to physical units
@@ -419,4 +464,6 @@ def calibrate(
         steps=int(steps),
         layout=layout,
         bases=bases,
+        theta=value,
+        effects_nominal=eff,
     )
