@@ -5,6 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ._data import DataFileError
 from ._errors import KinematicsError, TableFileError
 from ._tolerance import ToleranceFileError
 
@@ -83,6 +84,128 @@ def _map(args) -> int:
     return 0
 
 
+def _pose_arg(text: str, what: str) -> list[float]:
+    """'x=50,yaw=2' (mm / deg) -> 6 values in mm / rad."""
+    import numpy as np
+
+    vals = np.asarray(_parse_fixed(text), dtype=float)
+    vals[3:] = np.deg2rad(vals[3:])
+    return vals.tolist()
+
+
+def _simulate(args) -> int:
+
+    from ._data import save_measurements
+    from ._instrument import INSTRUMENTS
+    from ._io import save_table
+    from ._simulate import perturb_table, plan_grid, plan_random, plan_swing, plan_x_line
+    from ._simulate import simulate as run
+
+    table = _table(args.table)
+    true = perturb_table(table, args.seed, args.joint_sigma, args.zero_sigma)
+    plans = {
+        "random": lambda: plan_random(args.n, args.seed),
+        "x_line": plan_x_line,
+        "grid": lambda: plan_grid(3),
+        "swing": lambda: plan_swing("roll", 5.0, 2.0, args.n),
+    }
+    poses = plans[args.plan]()
+    print(
+        f"simulating {len(poses)} stops of '{table.name}' with a {args.instrument} ...",
+        file=sys.stderr,
+    )
+    data = run(
+        table,
+        true,
+        poses,
+        INSTRUMENTS[args.instrument](),
+        compensate=not args.uncompensated,
+        frame=_pose_arg(args.frame, "frame"),
+        target=_pose_arg(args.target, "target"),
+        seed=args.seed,
+    )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_measurements(data, out / "data.csv")
+    save_table(
+        true,
+        out / "true_table.toml",
+        header="The simulated hardware (nominal table + sampled errors); keep it away "
+        "from the calibration.",
+    )
+    print(
+        f"wrote {out / 'data.csv'} ({len(data)} rows, columns "
+        f"{', '.join(data.measured_columns)}) and {out / 'true_table.toml'}"
+    )
+    return 0
+
+
+def _calibrate(args) -> int:
+    import numpy as np
+
+    from ._calibrate import calibrate
+    from ._data import load_measurements
+    from ._io import save_table
+    from ._table import replace
+
+    table = _table(args.table)
+    data = load_measurements(args.data)
+    free = tuple(f.strip() for f in args.free.split(",") if f.strip())
+    print(f"calibrating {', '.join(free)} on {len(data)} rows ...", file=sys.stderr)
+    try:
+        cal = calibrate(
+            table, data, free, compensated=not args.uncompensated, estimate_frame=not args.no_frame
+        )
+    except ValueError as e:
+        print(f"jaxtable calibrate: error: {args.data}: {e}", file=sys.stderr)
+        return 2
+    fitted = cal.table
+    if "spiral" in cal.effects:
+        lead = np.asarray(cal.effects["spiral"].lead)
+        fitted = replace(fitted, lead=np.abs(lead), hand=np.where(lead < 0, -1.0, 1.0))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_table(
+        fitted,
+        out / "calibrated_table.toml",
+        header=f"Calibrated from {args.data} (free: {', '.join(free)}); joint centres "
+        "are fitted modulo rigid motions where the instrument frame was "
+        "estimated (see report.md).",
+    )
+    rows = [f"| {n} | {v:+.5g} | {s:.3g} |" for n, v, s in zip(cal.names, cal.value, cal.std)]
+    frames = "\n".join(
+        f"- session {lab}: "
+        + ", ".join(f"{c} {v:+.4f}" for c, v in zip("x y z".split(), cal.frame[k, :3]))
+        + " mm, "
+        + ", ".join(
+            f"{c} {np.rad2deg(v):+.5f}°" for c, v in zip("roll pitch yaw".split(), cal.frame[k, 3:])
+        )
+        for k, lab in enumerate(data.sessions)
+    )
+    text = "\n".join(
+        [
+            f"# Calibration of {table.name} from {args.data}",
+            "",
+            "```",
+            cal.report(),
+            "```",
+            "",
+            "Instrument frame (pose of the base frame in the instrument frame) per session:",
+            "",
+            frames,
+            "",
+            "| parameter (change from nominal) | value | σ |",
+            "|---|---|---|",
+            *rows,
+            "",
+        ]
+    )
+    (out / "report.md").write_text(text)
+    print(cal.report())
+    print(f"wrote {out / 'calibrated_table.toml'} and {out / 'report.md'}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxtable", description=__doc__)
     sub = p.add_subparsers(dest="verb", required=True)
@@ -131,6 +254,53 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--n", type=int, default=101, help="points per slice axis (default 101)")
     sp.add_argument("--fixed", default="", help="the other DOF, e.g. 'z=-50,yaw=5' (mm, deg)")
     sp.set_defaults(func=_map)
+
+    sp = sub.add_parser(
+        "simulate",
+        help="simulate a real table (nominal + sampled errors) "
+        "measured by an instrument; writes data.csv and true_table.toml",
+    )
+    common(sp, "out/simulate")
+    sp.add_argument(
+        "--instrument", choices=["tracker6", "point3", "interferometer"], default="tracker6"
+    )
+    sp.add_argument("--plan", choices=["random", "x_line", "grid", "swing"], default="random")
+    sp.add_argument("--n", type=int, default=100, help="poses (random, swing)")
+    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--joint-sigma", type=float, default=0.010, help="mm (default 0.010)")
+    sp.add_argument("--zero-sigma", type=float, default=0.050, help="mm (default 0.050)")
+    sp.add_argument("--frame", default="", help="instrument frame, e.g. 'x=50,yaw=2' (mm, deg)")
+    sp.add_argument("--target", default="", help="target on the platform, e.g. 'z=80'")
+    sp.add_argument(
+        "--uncompensated",
+        action="store_true",
+        help="the controller does not compensate the spiral term",
+    )
+    sp.set_defaults(func=_simulate)
+
+    sp = sub.add_parser(
+        "calibrate",
+        help="fit parameters to a measurement CSV (LM), with "
+        "covariance and an identifiability report",
+    )
+    sp.add_argument("data", type=Path, help="measurement CSV")
+    common(sp, "out/calibrate")
+    sp.add_argument(
+        "--free",
+        default="base_joints,platform_joints,zero_lengths",
+        help="comma-separated free parameters (table leaves or effect.field, e.g. spiral.lead)",
+    )
+    sp.add_argument(
+        "--no-frame",
+        action="store_true",
+        help="data are in the base frame: do not estimate the instrument frame",
+    )
+    sp.add_argument(
+        "--uncompensated",
+        action="store_true",
+        help="without cmd_l columns: the controller did not compensate the spiral",
+    )
+    sp.set_defaults(func=_calibrate)
     return p
 
 
@@ -138,7 +308,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (TableFileError, KinematicsError, ToleranceFileError) as e:
+    except (TableFileError, KinematicsError, ToleranceFileError, DataFileError) as e:
         print(f"jaxtable {args.verb}: error: {e}", file=sys.stderr)
         return 2
 

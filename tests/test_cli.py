@@ -38,3 +38,36 @@ def test_malformed_table_gives_exit_2_and_names_the_key(tmp_path, capsys):
     assert main(["spiral", "--table", str(path), "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "missing key(s)" in err and "home_height" in err and "bad.toml" in err
+
+
+def test_simulate_then_calibrate(tmp_path, capsys):
+    sim = tmp_path / "sim"
+    assert (
+        main(["simulate", "--n", "40", "--seed", "2", "--frame", "x=50,yaw=2", "--out", str(sim)])
+        == 0
+    )
+    assert (sim / "data.csv").exists() and (sim / "true_table.toml").exists()
+    out = tmp_path / "cal"
+    assert (
+        main(["calibrate", str(sim / "data.csv"), "--free", "zero_lengths", "--out", str(out)]) == 0
+    )
+    fitted = jt.load_table(out / "calibrated_table.toml")
+    true = jt.load_table(sim / "true_table.toml")
+    nominal = jt.reference_table()
+    report = (out / "report.md").read_text()
+    # L0 within 4σ of the truth (σ from the report; the 10 µm joint errors are unmodelled)
+    sigma = [float(line.split("|")[3]) for line in report.splitlines()
+             if line.startswith("| zero_lengths[")]
+    err = np.asarray(fitted.zero_lengths) - np.asarray(true.zero_lengths)
+    assert len(sigma) == 6 and np.all(np.abs(err) < 4 * np.asarray(sigma) + 0.012)
+    assert not np.allclose(np.asarray(fitted.zero_lengths), np.asarray(nominal.zero_lengths))
+    assert "converged: True" in report and "session 1: x +50.0" in report
+
+
+def test_calibrate_refuses_malformed_csv(tmp_path, capsys):
+    path = tmp_path / "bad.csv"
+    path.write_text(
+        "cmd_x,cmd_y,cmd_z,cmd_roll,cmd_pitch,cmd_yaw,x\n0,0,0,0,0,0,1\n0,0,oops,0,0,0,1\n"
+    )
+    assert main(["calibrate", str(path), "--out", str(tmp_path)]) == 2
+    assert "row 2, column 'cmd_z': 'oops' is not a number" in capsys.readouterr().err
