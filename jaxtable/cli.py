@@ -31,18 +31,23 @@ def _spiral(args) -> int:
     return 0
 
 
-def _parse_fixed(text: str) -> list[float]:
+class UsageError(ValueError):
+    """A malformed command-line value."""
+
+
+def _parse_fixed(text: str, flag: str = "--fixed") -> list[float]:
+    """'z=-50,yaw=5' -> 6 values in file units (mm / deg), others 0."""
     from ._errors import POSE_COLUMNS
 
     fixed = [0.0] * 6
     for item in filter(None, (t.strip() for t in text.split(","))):
         name, _, value = item.partition("=")
         if name not in POSE_COLUMNS:
-            raise SystemExit(f"jaxtable map: --fixed: unknown DOF '{name}' in '{item}'")
+            raise UsageError(f"{flag}: unknown DOF '{name}' in '{item}'")
         try:
             fixed[POSE_COLUMNS.index(name)] = float(value)
         except ValueError:
-            raise SystemExit(f"jaxtable map: --fixed: '{item}' is not DOF=number") from None
+            raise UsageError(f"{flag}: '{item}' is not DOF=number") from None
     return fixed
 
 
@@ -55,11 +60,11 @@ def _map(args) -> int:
     tol = Tolerances() if args.tolerances is None else load_tolerances(args.tolerances)
     dofs = tuple(d.strip() for d in args.slice.split(","))
     if len(dofs) != 2:
-        raise SystemExit(f"jaxtable map: --slice takes two DOF, e.g. x,y; got '{args.slice}'")
+        raise UsageError(f"--slice takes two DOF, e.g. x,y; got '{args.slice}'")
     try:
         grid = workspace_slice(dofs, args.n, fixed=_parse_fixed(args.fixed))
     except ValueError as e:
-        raise SystemExit(f"jaxtable map: {e}") from None
+        raise UsageError(str(e)) from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     emap, summary = error_map(table, tol, grid, progress=True)
@@ -84,11 +89,11 @@ def _map(args) -> int:
     return 0
 
 
-def _pose_arg(text: str, what: str) -> list[float]:
+def _pose_arg(text: str, flag: str) -> list[float]:
     """'x=50,yaw=2' (mm / deg) -> 6 values in mm / rad."""
     import numpy as np
 
-    vals = np.asarray(_parse_fixed(text), dtype=float)
+    vals = np.asarray(_parse_fixed(text, flag), dtype=float)
     vals[3:] = np.deg2rad(vals[3:])
     return vals.tolist()
 
@@ -120,8 +125,8 @@ def _simulate(args) -> int:
         poses,
         INSTRUMENTS[args.instrument](),
         compensate=not args.uncompensated,
-        frame=_pose_arg(args.frame, "frame"),
-        target=_pose_arg(args.target, "target"),
+        frame=_pose_arg(args.frame, "--frame"),
+        target=_pose_arg(args.target, "--target"),
         seed=args.seed,
     )
     out = Path(args.out)
@@ -308,7 +313,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (TableFileError, KinematicsError, ToleranceFileError, DataFileError) as e:
+    except (TableFileError, KinematicsError, ToleranceFileError, DataFileError, UsageError) as e:
         print(f"jaxtable {args.verb}: error: {e}", file=sys.stderr)
         return 2
 
