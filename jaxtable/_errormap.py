@@ -24,7 +24,7 @@ from ._errors import POSE_COLUMNS, require_x64
 from ._forward import angle_scale
 from ._kinematics import joint_bend, leg_lengths, spiral_extension
 from ._linalg import cond_small, inv_small
-from ._rotation import euler_rate_matrix
+from ._rotation import ARCSEC_PER_RAD, euler_rate_matrix
 from ._sensitivity import per_leg_jacobians_one
 from ._table import Table
 from ._tolerance import PARAMETER, SOURCES, Tolerances, budget_effects
@@ -238,9 +238,9 @@ def error_map(
         rc, ru = part.rotation(True), part.rotation(False)
         for k, name in enumerate(SOURCES + ("total",)):
             hist_t[name].add(tc[:, k])
-            hist_r[name].add(rc[:, k] * ARCSEC)
+            hist_r[name].add(rc[:, k] * ARCSEC_PER_RAD)
         hist_t[names[-1]].add(tu[:, -1])
-        hist_r[names[-1]].add(ru[:, -1] * ARCSEC)
+        hist_r[names[-1]].add(ru[:, -1] * ARCSEC_PER_RAD)
         n_reach += int(reach.sum())
         n_ok_c += int((part.target_margin(True) <= TARGET_MM).sum())
         n_ok_u += int((part.target_margin(False) <= TARGET_MM).sum())
@@ -269,9 +269,6 @@ def error_map(
     shp = grid.shape
     emap = ErrorMap(grid, *(c.reshape(shp + c.shape[1:]) for c in cat))
     return emap, summary
-
-
-ARCSEC = math.degrees(1.0) * 3600.0
 
 
 def _pad(p: np.ndarray, size: int) -> np.ndarray:

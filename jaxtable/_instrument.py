@@ -17,9 +17,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from ._rotation import rotation_matrix
-
-ARCSEC = np.deg2rad(1.0 / 3600.0)
+from ._rotation import ARCSEC_PER_RAD, rotation_matrix
 
 
 def euler_zyx(R):
@@ -58,7 +56,7 @@ class Instrument:
         return m
 
 
-def tracker6(pos_sigma=0.005, ang_sigma=2 * ARCSEC) -> Instrument:
+def tracker6(pos_sigma=0.005, ang_sigma=2 / ARCSEC_PER_RAD) -> Instrument:
     """A 6-D pose tracker (laser tracker with a 6-DOF probe): 5 µm, 2 arcsec by default."""
     return Instrument("tracker6", (0, 1, 2, 3, 4, 5), (pos_sigma,) * 3 + (ang_sigma,) * 3)
 

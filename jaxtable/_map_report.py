@@ -5,8 +5,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._errormap import ARCSEC, TARGET_MM, ErrorMap, Grid, error_map
+from ._errormap import TARGET_MM, ErrorMap, Grid, error_map
 from ._errors import POSE_COLUMNS
+from ._rotation import ARCSEC_PER_RAD
 from ._table import Table
 from ._tolerance import SOURCES, Tolerances
 
@@ -41,7 +42,7 @@ def slice_figures(table: Table, emap: ErrorMap, out: Path, stem: str) -> list[Pa
     tr = emap.translation(True)
     panels = [
         ("translation σ, total (mm)", tr[..., -1], "viridis"),
-        ("rotation σ, total (arcsec)", emap.rotation(True)[..., -1] * ARCSEC, "viridis"),
+        ("rotation σ, total (arcsec)", emap.rotation(True)[..., -1] * ARCSEC_PER_RAD, "viridis"),
         ("spiral bias if uncompensated (mm)", np.linalg.norm(emap.bias[..., :3], axis=-1), "magma"),
         ("condition number of the Jacobian", emap.cond, "cividis"),
     ]

@@ -1,7 +1,11 @@
 """Rotation matrices for the Z-Y-X (yaw-pitch-roll) attitude convention."""
 
+import math
+
 import jax.numpy as jnp
 from jaxtyping import Array, Float
+
+ARCSEC_PER_RAD = math.degrees(1.0) * 3600.0
 
 
 def rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:

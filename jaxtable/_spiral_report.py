@@ -10,10 +10,9 @@ import numpy as np
 
 from ._api import actuator_command, forward, reachable, rod_rotation, spiral_extension
 from ._errors import POSE_COLUMNS
+from ._rotation import ARCSEC_PER_RAD
 from ._table import Table
 from ._workspace import Workspace
-
-ARCSEC = np.rad2deg(1.0) * 3600.0
 
 
 def _pose_error(table: Table, poses: np.ndarray, compensate: bool) -> np.ndarray:
@@ -66,9 +65,9 @@ def spiral_analysis(
                 n_total=len(poses),
                 max_ext_mm=float(ext.max()),
                 max_trans_raw_mm=float(t_raw.max()),
-                max_rot_raw_arcsec=float(r_raw.max() * ARCSEC),
+                max_rot_raw_arcsec=float(r_raw.max() * ARCSEC_PER_RAD),
                 max_trans_comp_mm=float(t_comp.max()),
-                max_rot_comp_arcsec=float(r_comp.max() * ARCSEC),
+                max_rot_comp_arcsec=float(r_comp.max() * ARCSEC_PER_RAD),
                 worst_pose=p[k],
             )
         )
@@ -107,9 +106,9 @@ def markdown(table: Table, a: dict, workspace: Workspace) -> str:
             " ".join(f"{v:+.4f}" for v in ext[0]),
         ),
         f"- pose error without compensation: max |translation| {t_raw.max():.4f} mm, "
-        f"max |rotation| {r_raw.max() * ARCSEC:.2f} arcsec",
+        f"max |rotation| {r_raw.max() * ARCSEC_PER_RAD:.2f} arcsec",
         f"- with compensation (Δl* = Δl − Δl2): {t_comp.max():.2e} mm, "
-        f"{r_comp.max() * ARCSEC:.2e} arcsec",
+        f"{r_comp.max() * ARCSEC_PER_RAD:.2e} arcsec",
         "",
         "## Over the workspace",
         "",
@@ -192,9 +191,11 @@ def figures(table: Table, a: dict, out: Path) -> list[Path]:
     raw, comp = a["line_err_raw"], a["line_err_comp"]
     for c in range(3):
         a1.plot(xs, raw[:, c], label=f"{POSE_COLUMNS[c]}")
-        a2.plot(xs, raw[:, c + 3] * ARCSEC, label=f"{POSE_COLUMNS[c + 3]}")
+        a2.plot(xs, raw[:, c + 3] * ARCSEC_PER_RAD, label=f"{POSE_COLUMNS[c + 3]}")
     a1.plot(xs, np.linalg.norm(comp[:, :3], axis=1), "k:", label="|error|, compensated")
-    a2.plot(xs, np.linalg.norm(comp[:, 3:], axis=1) * ARCSEC, "k:", label="|error|, compensated")
+    a2.plot(
+        xs, np.linalg.norm(comp[:, 3:], axis=1) * ARCSEC_PER_RAD, "k:", label="|error|, compensated"
+    )
     a1.set_ylabel("translation error (mm)")
     a2.set_ylabel("rotation error (arcsec)")
     for ax in (a1, a2):
