@@ -21,8 +21,21 @@ from ._api import (  # noqa: E402
     rod_rotation,
     spiral_extension,
 )
+from ._context import Context  # noqa: E402
 from ._design import symmetric_table  # noqa: E402
-from ._effects import AbstractEffect, LeadScale, Spiral, default_effects  # noqa: E402
+from ._effects import (  # noqa: E402
+    EFFECTS,
+    AbstractEffect,
+    Backlash,
+    Compliance,
+    LeadScale,
+    PeriodicLead,
+    Rehoming,
+    Spiral,
+    Thermal,
+    default_effects,
+    leg_forces,
+)
 from ._errormap import ErrorMap, Grid, PoseList, error_map, workspace_slice  # noqa: E402
 from ._errors import KinematicsError, TableFileError  # noqa: E402
 from ._forward import ForwardOptions  # noqa: E402
@@ -41,6 +54,14 @@ from ._workspace import Workspace  # noqa: E402
 
 __all__ = [
     "AbstractEffect",
+    "Backlash",
+    "Compliance",
+    "Context",
+    "EFFECTS",
+    "PeriodicLead",
+    "Rehoming",
+    "Thermal",
+    "leg_forces",
     "ErrorMap",
     "Grid",
     "LeadScale",

@@ -14,6 +14,7 @@ from jaxtyping import Array, Float
 
 from . import _kinematics as kin
 from ._batch import flatten_batch, map_batch
+from ._context import Context, batch_context
 from ._effects import Effects, resolve_effects
 from ._errors import (
     KinematicsError,
@@ -127,8 +128,8 @@ def _check_stroke(table: Table, lengths, batch_shape, name: str) -> None:
 
 
 @eqx.filter_jit
-def _inverse_flat(table, effects, flat, chunk):
-    return map_batch(partial(inverse_extension, table, effects), flat, chunk=chunk)
+def _inverse_flat(table, effects, flat, ctx, chunk):
+    return map_batch(partial(inverse_extension, table, effects), flat, ctx, chunk=chunk)
 
 
 def actuator_command(
@@ -137,6 +138,7 @@ def actuator_command(
     compensate: bool = True,
     *,
     effects: Effects | None = None,
+    context: Context | None = None,
     check: bool = True,
     chunk: int = 1 << 16,
 ) -> Float[Array, "... 6"]:
@@ -146,7 +148,8 @@ def actuator_command(
     controller commands). `compensate=True`: the command L0_i + s_i for which the hardware,
     with its effects (default: the table's own, i.e. the passive spiral term), reaches the
     pose: the paper's Δl* = Δl − Δl2 for the spiral term. The actuator extension is
-    s_i = command_i − L0_i.
+    s_i = command_i − L0_i. `context`: the stops' context (a `Context` for all, or one with a
+    leading axis of the flattened batch; default: home context).
 
     With `check=True` (default) a non-finite pose or a command outside the stroke raises
     KinematicsError naming the pose and leg.
@@ -155,7 +158,7 @@ def actuator_command(
     check_finite_poses(poses)
     eff = resolve_effects(table, effects) if compensate else {}
     flat, batch_shape = flatten_batch(poses, 1)
-    s, _ = _inverse_flat(table, eff, flat, chunk)
+    s, _ = _inverse_flat(table, eff, flat, batch_context(flat.shape[0], context), chunk)
     cmd = table.zero_lengths + s
     if check:
         _check_stroke(table, cmd, batch_shape, "commanded leg length(s)")
@@ -187,11 +190,11 @@ _REASONS = {
 
 
 @eqx.filter_jit
-def _forward_flat(table, effects, s, guess, options, chunk):
-    def one(s_i, g_i):
-        return forward_one(table, effects, s_i, g_i, options)
+def _forward_flat(table, effects, s, guess, ctx, options, chunk):
+    def one(s_i, g_i, c_i):
+        return forward_one(table, effects, s_i, g_i, options, c_i)
 
-    pose, code, steps, resid = map_batch(one, s, guess, chunk=chunk)
+    pose, code, steps, resid = map_batch(one, s, guess, ctx, chunk=chunk)
     code = jnp.where((code == 0) & ~(resid <= options.accept_residual), 100, code)
     below = pose[:, 2] + table.home_height <= 0
     code = jnp.where((code == 0) & below, 101, code)
@@ -205,6 +208,7 @@ def forward_solve(
     effects: Effects | None = None,
     guess=None,
     nominal: Table | None = None,
+    context: Context | None = None,
     options: ForwardOptions = ForwardOptions(),
     chunk: int = 1 << 16,
 ) -> ForwardResult:
@@ -222,7 +226,8 @@ def forward_solve(
     else:
         check_finite_poses(guess, "guess")
         g = jnp.broadcast_to(jnp.asarray(guess, dtype=jnp.float64), flat.shape[:1] + (6,))
-    pose, code, steps, resid = _forward_flat(table, eff, s, g, options, chunk)
+    ctx = batch_context(flat.shape[0], context)
+    pose, code, steps, resid = _forward_flat(table, eff, s, g, ctx, options, chunk)
     return ForwardResult(
         pose.reshape(batch_shape + (6,)),
         code.reshape(batch_shape),
@@ -238,6 +243,7 @@ def forward(
     effects: Effects | None = None,
     guess=None,
     nominal: Table | None = None,
+    context: Context | None = None,
     options: ForwardOptions = ForwardOptions(),
     chunk: int = 1 << 16,
 ) -> Float[Array, "... 6"]:
@@ -248,7 +254,9 @@ def forward(
     table that differs from it); the pose q solves
     |l_i(q)| = L0_i + s_i + Σ effects_i(q, s) by Newton (optimistix) from `guess` (default:
     home), with the effects (default: the table's hardware effects, i.e. the passive spiral
-    term; `{}` = rigid) inside the solve. Differentiable by implicit differentiation.
+    term; `{}` = rigid) inside the solve, evaluated in `context` (a `Context`, batched over
+    the flattened commands or shared; default: home). Differentiable by implicit
+    differentiation.
 
     Raises KinematicsError, naming the pose(s) and the reason, for non-finite commands,
     commands outside the stroke, non-convergence, a singular Jacobian or a non-physical
@@ -264,6 +272,7 @@ def forward(
         effects=effects,
         guess=guess,
         nominal=nominal,
+        context=context,
         options=options,
         chunk=chunk,
     )

@@ -23,6 +23,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 from ._api import actuator_command
+from ._context import Context, directions
 from ._data import Measurements
 from ._effects import resolve_effects
 from ._forward import ForwardOptions, forward_one
@@ -30,6 +31,7 @@ from ._instrument import observe
 from ._table import Table
 
 JOINTS = ("base_joints", "platform_joints")
+COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
 
 
 def rigid_motion_basis(points: np.ndarray) -> np.ndarray:
@@ -88,6 +90,7 @@ class Problem(eqx.Module):
     weight: jax.Array  # (N, 6) 1/σ, 0 where not measured
     session: jax.Array  # (N,) int
     bases: dict  # joint set -> (18, k) basis
+    ctx: Context  # batched (N,) context of every stop
 
 
 def _build(problem: Problem, layout: Layout, theta):
@@ -127,11 +130,11 @@ def _build(problem: Problem, layout: Layout, theta):
 def _predict(problem: Problem, layout: Layout, theta, options=ForwardOptions()):
     table, effects, frame, target = _build(problem, layout, theta)
 
-    def one(s, g, sess):
-        q, code, _, _ = forward_one(table, effects, s, g, options)
+    def one(s, g, sess, ctx):
+        q, code, _, _ = forward_one(table, effects, s, g, options, ctx)
         return observe(q, frame[sess], target), code
 
-    return jax.vmap(one)(problem.s, problem.guess, problem.session)
+    return jax.vmap(one)(problem.s, problem.guess, problem.session, problem.ctx)
 
 
 def _residual(theta, args):
@@ -146,9 +149,11 @@ _residual_jit = eqx.filter_jit(_residual)
 
 
 @eqx.filter_jit
-def _solve(problem, layout, theta0, rtol, atol, max_steps):
-    """LM in Jacobi-scaled variables u (θ = θ0 + D u, D = 1 / column norms of the Jacobian at
-    θ0): mm, rad and mm/rev parameters then take comparable steps."""
+def _solve(problem, layout, theta0, mask, rtol, atol, max_steps):
+    """LM in Jacobi-scaled variables u (θ = θ0 + D·mask·u, D = 1 / column norms of the
+    Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps. `mask` (P,)
+    (0/1, traced) freezes parameters without recompiling, so nested models and folds of one
+    data set share one compilation."""
     flat0, unravel = ravel_pytree(theta0)
 
     def res_flat(f):
@@ -156,7 +161,7 @@ def _solve(problem, layout, theta0, rtol, atol, max_steps):
 
     J0 = jax.jacfwd(res_flat)(flat0)
     norms = jnp.linalg.norm(J0, axis=0)
-    D = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 1.0)
+    D = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 1.0) * mask
 
     def res_scaled(u, _):
         return res_flat(flat0 + D * u)
@@ -235,6 +240,16 @@ class Calibration:
     bases: dict = field(default_factory=dict)
     theta: dict = field(default_factory=dict)
     effects_nominal: dict = field(default_factory=dict)
+    rank: int = 0
+    n_obs: int = 0
+    residual: np.ndarray | None = None  # (N, 6) weighted residuals after the fit
+    covariance: np.ndarray | None = None
+
+    def parameter(self, prefix: str):
+        """(value, std) arrays of the fitted parameters whose name starts with `prefix`
+        (e.g. "spiral.lead")."""
+        idx = [i for i, n in enumerate(self.names) if n == prefix or n.startswith(prefix + "[")]
+        return self.value[idx], self.std[idx]
 
     def report(self) -> str:
         lines = [
@@ -287,6 +302,19 @@ def _names(layout: Layout, theta0) -> list:
     return out
 
 
+def data_context(data: Measurements, cmd: np.ndarray) -> Context:
+    """Batched context (N,) of the data's stops: direction of travel from the row order of
+    the commanded lengths `cmd` (N, 6), temperature (20 °C if absent), payload (0 if absent),
+    session index."""
+    n = len(data)
+    return Context(
+        directions(cmd),
+        np.full(n, 20.0) if data.temperature is None else np.asarray(data.temperature, float),
+        np.zeros(n) if data.payload is None else np.asarray(data.payload, float),
+        np.asarray(data.session_index),
+    )
+
+
 def make_problem(nominal: Table, data: Measurements, effects, bases, compensated=True):
     """Arrays of a calibration problem; refuses commands outside the stroke (row, leg named)
     and measured values without a positive σ."""
@@ -324,6 +352,7 @@ def make_problem(nominal: Table, data: Measurements, effects, bases, compensated
         weight=jnp.asarray(np.where(mask, 1.0 / np.where(mask, sigma, 1.0), 0.0)),
         session=jnp.asarray(data.session_index),
         bases={n: jnp.asarray(b) for n, b in bases.items()},
+        ctx=data_context(data, cmd),
     )
 
 
@@ -343,7 +372,31 @@ def validate(cal: "Calibration", nominal: Table, data: Measurements, compensated
     }
 
 
-def calibrate(
+@dataclass
+class Setup:
+    """One data set prepared for fitting: the problem arrays, the parameter layout, the start
+    θ0 (a dict of blocks), flat parameter `names`, the measured mask (N, 6) and the effects
+    (all at their start values)."""
+
+    problem: Problem
+    layout: Layout
+    theta0: dict
+    names: list
+    mask: np.ndarray
+    effects: dict
+
+    def free_mask(self, free) -> np.ndarray:
+        """(P,) 0/1 over the flat parameters: the blocks named in `free` plus the nuisance
+        frame/target blocks."""
+        keep = tuple(free) + ("frame", "target")
+        out = []
+        for key in sorted(self.theta0):
+            on = key in keep
+            out += [1.0 if on else 0.0] * int(np.asarray(self.theta0[key]).size)
+        return np.asarray(out)
+
+
+def setup(
     nominal: Table,
     data: Measurements,
     free=("base_joints", "platform_joints", "zero_lengths"),
@@ -351,22 +404,9 @@ def calibrate(
     effects=None,
     compensated: bool = True,
     estimate_frame: bool = True,
-    identifiability_tol: float = 1e-6,
-    rtol: float = 1e-10,
-    atol: float = 1e-10,
-    max_steps: int = 200,
-) -> Calibration:
-    """Fit the `free` parameters (table leaves: base_joints, platform_joints, zero_lengths,
-    ...; effect fields: "spiral.lead", ...) of the model `nominal` + `effects` (default: its
-    hardware effects) to `data`.
-
-    Commanded lengths come from the data, or (absent) from the nominal inverse kinematics,
-    compensated for the spiral term when `compensated`. With `estimate_frame`, the instrument
-    frame of each session and the target offset are estimated (initialised in closed form)
-    over the components the instrument can see, and the joint sets are fitted modulo rigid
-    motions (the gauge). Directions whose scaled singular value is below
-    `identifiability_tol` × the largest are reported as unidentifiable and get std = inf.
-    """
+) -> Setup:
+    """Prepare `data` for fitting the `free` parameters of `nominal` + `effects` (see
+    `calibrate`). Every block in `free` gets a θ entry (zero = the start value)."""
     free = tuple(free)
     if not np.isfinite(data.measured).any():
         raise ValueError("no measured values in the data")
@@ -395,24 +435,58 @@ def calibrate(
                 raise ValueError(f"free parameter '{name}': no effect '{e}' in the model")
             theta0[name] = jnp.zeros_like(getattr(eff[e], f))
         else:
+            if not hasattr(nominal, name):
+                raise ValueError(f"free parameter '{name}': the table has no such leaf")
             theta0[name] = jnp.zeros_like(getattr(nominal, name))
     if frame_dofs:
         theta0["frame"] = jnp.asarray(initial_frames(data, frame_dofs)[:, list(frame_dofs)])
     if target_dofs:
         theta0["target"] = jnp.zeros(len(target_dofs))
+    return Setup(problem, layout, theta0, _names(layout, theta0), mask, eff)
 
+
+def fit(
+    st: Setup,
+    free_mask=None,
+    rows=None,
+    *,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    max_steps: int = 200,
+    identifiability_tol: float = 1e-6,
+    theta0=None,
+) -> "Calibration":
+    """Fit the parameters of `st` where `free_mask` (P,) is 1 (default: all), using only the
+    data rows `rows` (bool (N,) or indices; default all: held-out rows get zero weight, so
+    every fold and nested model of one data set reuses one compilation)."""
+    problem, layout = st.problem, st.layout
+    theta0 = st.theta0 if theta0 is None else theta0
+    flat0, _ = ravel_pytree(theta0)
+    fm = np.ones(flat0.shape[0]) if free_mask is None else np.asarray(free_mask, float)
+    use = np.ones(len(st.mask), bool)
+    if rows is not None:
+        use = np.zeros(len(st.mask), bool)
+        use[np.asarray(rows)] = True
+    if not use.all():
+        problem = eqx.tree_at(
+            lambda p: p.weight, problem, problem.weight * jnp.asarray(use, float)[:, None]
+        )
+    mask = st.mask & use[:, None]
     before = np.asarray(_residual_jit(theta0, (problem, layout))).reshape(-1, 6)
-    value, code, steps, J, codes = _solve(problem, layout, theta0, rtol, atol, max_steps)
-    if np.any(np.asarray(codes) != 0):
-        bad = np.flatnonzero(np.asarray(codes) != 0)
+    value, code, steps, J, codes = _solve(
+        problem, layout, theta0, jnp.asarray(fm), rtol, atol, max_steps
+    )
+    if np.any(np.asarray(codes)[use] != 0):
+        bad = np.flatnonzero((np.asarray(codes) != 0) & use)
         raise RuntimeError(
             f"forward kinematics failed at the fitted parameters for row(s) "
             f"{(bad + 1).tolist()[:10]}"
         )
     after = np.asarray(_residual_jit(value, (problem, layout))).reshape(-1, 6)
-    J = np.asarray(J)
-    flat, _ = ravel_pytree(value)
-    names = _names(layout, theta0)
+    on = fm > 0
+    J = np.asarray(J)[:, on]
+    flat = np.asarray(ravel_pytree(value)[0])[on]
+    names = [n for n, k in zip(st.names, on) if k]
     # identifiability: SVD of the column-scaled Jacobian
     scale = np.linalg.norm(J, axis=0)
     scale[scale == 0] = 1.0
@@ -433,14 +507,14 @@ def calibrate(
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(np.sqrt(np.diag(cov)), np.sqrt(np.diag(cov)))
     table, effects_fit, frame, target = _build(problem, layout, value)
-    cols = [c for k, c in enumerate("x y z roll pitch yaw".split()) if col_mask[k]]
+    cols = [c for k, c in enumerate(COLUMNS) if mask[:, k].any()]
     sig = np.where(mask, 1.0 / np.where(mask, np.asarray(problem.weight), 1.0), np.nan)
 
     def rms(res):
         r = res * sig  # back to physical units
         return {
             c: float(np.sqrt(np.nanmean(np.where(mask[:, k], r[:, k], np.nan) ** 2)))
-            for k, c in enumerate("x y z roll pitch yaw".split())
+            for k, c in enumerate(COLUMNS)
             if c in cols
         }
 
@@ -451,19 +525,64 @@ def calibrate(
         frame=np.asarray(frame),
         target=np.asarray(target),
         names=names,
-        value=np.asarray(flat),
+        value=flat,
         std=std,
         correlation=corr,
         singular_values=sv / sv[0],
         unidentifiable=unident,
         rms_before=rms(before),
         rms_after=rms(after),
-        chi2=float((after**2).sum()),
+        chi2=float((after[use] ** 2).sum()),
         dof=n_obs - int(ok.sum()),
         converged=int(code) == 0,
         steps=int(steps),
         layout=layout,
-        bases=bases,
+        bases=st.problem.bases,
         theta=value,
-        effects_nominal=eff,
+        effects_nominal=st.effects,
+        rank=int(ok.sum()),
+        n_obs=n_obs,
+        residual=after,
+        covariance=cov,
+    )
+
+
+def calibrate(
+    nominal: Table,
+    data: Measurements,
+    free=("base_joints", "platform_joints", "zero_lengths"),
+    *,
+    effects=None,
+    compensated: bool = True,
+    estimate_frame: bool = True,
+    identifiability_tol: float = 1e-6,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    max_steps: int = 200,
+) -> "Calibration":
+    """Fit the `free` parameters (table leaves: base_joints, platform_joints, zero_lengths,
+    ...; effect fields: "spiral.lead", ...) of the model `nominal` + `effects` (default: its
+    hardware effects) to `data`.
+
+    Commanded lengths come from the data, or (absent) from the nominal inverse kinematics,
+    compensated for the spiral term when `compensated`. With `estimate_frame`, the instrument
+    frame of each session and the target offset are estimated (initialised in closed form)
+    over the components the instrument can see, and the joint sets are fitted modulo rigid
+    motions (the gauge). Directions whose scaled singular value is below
+    `identifiability_tol` × the largest are reported as unidentifiable and get std = inf.
+    """
+    st = setup(
+        nominal,
+        data,
+        free,
+        effects=effects,
+        compensated=compensated,
+        estimate_frame=estimate_frame,
+    )
+    return fit(
+        st,
+        identifiability_tol=identifiability_tol,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
     )

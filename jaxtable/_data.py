@@ -88,13 +88,11 @@ class Measurements:
     def direction(self) -> np.ndarray:
         """(N, 6) ±1: +1 if the leg last moved out (extending), −1 if in, from the row order
         of the commanded lengths (first row +1; a leg that did not move keeps its sign)."""
+        from ._context import directions
+
         if self.cmd_lengths is None:
             raise ValueError("direction needs the commanded lengths (cmd_l1..6)")
-        d = np.sign(np.diff(self.cmd_lengths, axis=0))
-        d = np.concatenate([np.ones((1, 6)), d])
-        rows = np.arange(len(d))[:, None]
-        last = np.maximum.accumulate(np.where(d != 0, rows, 0), axis=0)  # last move's row
-        return np.take_along_axis(d, last, axis=0)
+        return directions(self.cmd_lengths)
 
     def subset(self, rows) -> "Measurements":
         rows = np.asarray(rows)

@@ -1,9 +1,24 @@
 """Physical effects: extra leg length added on the actuator side of the model.
 
-An effect is an `eqx.Module` whose `__call__(table, pose, s)` returns the extra length of each
-leg (mm, shape (6,)) for ONE pose `pose` (6,) and actuator extensions `s` (6,) (commanded
-extension from home, mm). The extra length of leg i may depend on the pose and on s_i only
-(not on the other legs' extensions): the inverse solve relies on that.
+An effect is an `eqx.Module` whose `__call__(table, pose, s, ctx)` returns the extra length of
+each leg (mm, shape (6,)) for ONE pose `pose` (6,), actuator extensions `s` (6,) (commanded
+extension from home, mm) and recording context `ctx` (`Context`: direction of travel,
+temperature, payload, session). The extra length of leg i may depend on the pose and on s_i
+only (not on the other legs' extensions): the inverse solve relies on that.
+
+The library (DESIGN.md names; `EFFECTS` maps name -> class). Every effect is zero at its
+`null` parameters, so geometry + effect nests the geometric model; `typical` is a realistic
+magnitude and `prior` the range a fit or a simulation should stay in, each with its source.
+
+| name | extra length | fields |
+|---|---|---|
+| spiral | hand·lead·Δα_i/(2π) | lead (6,) mm/rev, signed |
+| lead_scale | ε_i s_i | eps (6,) |
+| backlash | −(w_i/2) d_i | w (6,) mm |
+| periodic_lead | a_i sin(2π s_i/p_i) + b_i cos(2π s_i/p_i), p = table lead | a, b (6,) mm |
+| thermal | α_i (T − 20 °C) L0_i | alpha (6,) 1/K |
+| compliance | F_i(q)/k_i, F axial force (tension +) from static equilibrium | flex = 1/k (6,) mm/N |
+| rehoming | c_i,session (first session 0) | offsets (S−1, 6) mm |
 """
 
 from collections.abc import Mapping
@@ -14,21 +29,43 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._context import REFERENCE_TEMPERATURE, Context
 from ._errors import is_concrete
-from ._kinematics import rod_rotation
+from ._kinematics import leg_vectors, rod_rotation
+from ._linalg import solve_small
+from ._rotation import rotation_matrix
 from ._table import Table
+
+GRAVITY = 9.80665  # m/s²
+
+
+def _legs(x) -> Array:
+    return jnp.broadcast_to(jnp.asarray(x, dtype=jnp.float64), (6,))
 
 
 class AbstractEffect(eqx.Module):
-    """Base class. Subclasses set `depends_on_extension` (True if the extra length depends on
-    s, so the inverse kinematics needs a per-leg Newton solve) and implement `__call__`."""
+    """Base class. Class variables: `name` (the stable string), `fields` (fitted parameter
+    fields), `depends_on_extension` (True if the extra length depends on s, so the inverse
+    kinematics needs a per-leg Newton solve), `needs` (data the effect needs: "temperature",
+    "session", "mass"), `typical` and `prior` (field -> magnitude / (lo, hi), with `source`)."""
 
+    name: ClassVar[str] = ""
+    fields: ClassVar[tuple] = ()
     depends_on_extension: ClassVar[bool] = False
+    needs: ClassVar[tuple] = ()
+    typical: ClassVar[dict] = {}
+    prior: ClassVar[dict] = {}
+    source: ClassVar[str] = ""
 
     def __call__(
-        self, table: Table, pose: Float[Array, "6"], s: Float[Array, "6"]
+        self, table: Table, pose: Float[Array, "6"], s: Float[Array, "6"], ctx: Context
     ) -> Float[Array, "6"]:
         raise NotImplementedError
+
+    @classmethod
+    def null(cls, n_sessions: int = 1) -> "AbstractEffect":
+        """The effect with zero extra length everywhere (the start of a discovery fit)."""
+        return cls()
 
 
 class Spiral(AbstractEffect):
@@ -39,33 +76,188 @@ class Spiral(AbstractEffect):
     """
 
     lead: Float[Array, "6"]
+    name: ClassVar[str] = "spiral"
+    fields: ClassVar[tuple] = ("lead",)
+    typical: ClassVar[dict] = {"lead": 12.7}
+    prior: ClassVar[dict] = {"lead": (-50.0, 50.0)}
+    source: ClassVar[str] = (
+        "roller-screw leads 5-20 mm/rev (the paper's cylinders: 12.7 mm, right hand, per the "
+        "reference reconstruction); a prior of ±50 mm/rev covers any catalogue screw"
+    )
 
-    def __init__(self, lead):
-        self.lead = jnp.broadcast_to(jnp.asarray(lead, dtype=jnp.float64), (6,))
+    def __init__(self, lead=0.0):
+        self.lead = _legs(lead)
 
     @classmethod
     def from_table(cls, table: Table) -> "Spiral":
         return cls(table.signed_lead)
 
-    def __call__(self, table, pose, s):
+    def __call__(self, table, pose, s, ctx=None):
         return self.lead * rod_rotation(table, pose) / (2 * jnp.pi)
 
 
 class LeadScale(AbstractEffect):
-    """Lead (pitch) error proportional to travel: ε_i · s_i, mm.
-
-    `eps`: (6,) dimensionless. The paper's roller screws: 25 µm / 300 mm ≈ 8.3e-5.
-    """
+    """Lead (pitch) error proportional to travel: ε_i · s_i, mm. `eps` (6,) dimensionless."""
 
     eps: Float[Array, "6"]
+    name: ClassVar[str] = "lead_scale"
+    fields: ClassVar[tuple] = ("eps",)
     depends_on_extension: ClassVar[bool] = True
+    typical: ClassVar[dict] = {"eps": 8.3e-5}
+    prior: ClassVar[dict] = {"eps": (-5e-4, 5e-4)}
+    source: ClassVar[str] = (
+        "the paper: 25 µm per 300 mm of travel (8.3e-5); ISO 3408-3 class 7 screws allow "
+        "~50 µm/300 mm"
+    )
 
     def __init__(self, eps=0.0):
-        self.eps = jnp.broadcast_to(jnp.asarray(eps, dtype=jnp.float64), (6,))
+        self.eps = _legs(eps)
 
-    def __call__(self, table, pose, s):
+    def __call__(self, table, pose, s, ctx=None):
         return self.eps * s
 
+
+class Backlash(AbstractEffect):
+    """Lost motion: −(w_i/2)·d_i, mm; d_i = +1 if leg i last moved out, −1 if in.
+    `w` (6,) mm."""
+
+    w: Float[Array, "6"]
+    name: ClassVar[str] = "backlash"
+    fields: ClassVar[tuple] = ("w",)
+    typical: ClassVar[dict] = {"w": 0.02}
+    prior: ClassVar[dict] = {"w": (0.0, 0.2)}
+    source: ClassVar[str] = (
+        "lost motion of a screw nut, coupling and joint play: 5-30 µm preloaded, up to "
+        "0.1-0.2 mm worn; the paper's joint clearance budget is 0.1 mm"
+    )
+
+    def __init__(self, w=0.0):
+        self.w = _legs(w)
+
+    def __call__(self, table, pose, s, ctx):
+        return -0.5 * self.w * ctx.direction
+
+
+class PeriodicLead(AbstractEffect):
+    """Periodic lead error within one screw turn: a_i sin(2π s_i/p_i) + b_i cos(2π s_i/p_i),
+    p_i = |lead_i| of the table (a leg with lead 0 has no term). `a`, `b` (6,) mm."""
+
+    a: Float[Array, "6"]
+    b: Float[Array, "6"]
+    name: ClassVar[str] = "periodic_lead"
+    fields: ClassVar[tuple] = ("a", "b")
+    depends_on_extension: ClassVar[bool] = True
+    typical: ClassVar[dict] = {"a": 0.005, "b": 0.005}
+    prior: ClassVar[dict] = {"a": (-0.05, 0.05), "b": (-0.05, 0.05)}
+    source: ClassVar[str] = (
+        "ISO 3408-3 travel variation within 2π rad (v_2πp): 6-8 µm for class 3-5 screws"
+    )
+
+    def __init__(self, a=0.0, b=0.0):
+        self.a = _legs(a)
+        self.b = _legs(b)
+
+    def __call__(self, table, pose, s, ctx=None):
+        p = jnp.abs(table.lead)
+        ok = p > 0
+        phase = 2 * jnp.pi * s / jnp.where(ok, p, 1.0)
+        return jnp.where(ok, self.a * jnp.sin(phase) + self.b * jnp.cos(phase), 0.0)
+
+
+class Thermal(AbstractEffect):
+    """Thermal growth of the legs: α_i (T − 20 °C) L0_i, mm. `alpha` (6,) 1/K; needs the
+    `temperature` column."""
+
+    alpha: Float[Array, "6"]
+    name: ClassVar[str] = "thermal"
+    fields: ClassVar[tuple] = ("alpha",)
+    needs: ClassVar[tuple] = ("temperature",)
+    typical: ClassVar[dict] = {"alpha": 11.5e-6}
+    prior: ClassVar[dict] = {"alpha": (-3e-5, 3e-5)}
+    source: ClassVar[str] = (
+        "steel screws and barrels: 11-12e-6 /K; the controller's model is at 20 °C "
+        "(ISO 1 reference temperature)"
+    )
+
+    def __init__(self, alpha=0.0):
+        self.alpha = _legs(alpha)
+
+    def __call__(self, table, pose, s, ctx):
+        return self.alpha * (ctx.temperature - REFERENCE_TEMPERATURE) * table.zero_lengths
+
+
+def leg_forces(table: Table, pose: Float[Array, "6"], payload=0.0) -> Float[Array, "6"]:
+    """Axial leg forces F (6,), N, tension positive, holding the platform mass plus `payload`
+    (kg, at the platform CoG) against gravity (−z) in static equilibrium:
+    Σ F_i u_i = W and Σ F_i (R a_i × u_i) = R c × W, W = (0, 0, −m g)."""
+    l = leg_vectors(table, pose)
+    u = l / jnp.linalg.norm(l, axis=-1, keepdims=True)
+    R = rotation_matrix(pose[3:])
+    ra = table.platform_joints @ R.T
+    A = jnp.concatenate([u.T, jnp.cross(ra, u).T], axis=0)  # (6, 6), column i = leg i
+    W = jnp.array([0.0, 0.0, -GRAVITY]) * (table.platform_mass + payload)
+    rhs = jnp.concatenate([W, jnp.cross(R @ table.platform_cog, W)])
+    return solve_small(A, rhs[:, None])[:, 0]
+
+
+class Compliance(AbstractEffect):
+    """Axial leg compliance under the static load: F_i(q)/k_i, mm (compression shortens).
+    Stored as `flex` = 1/k (6,) mm/N so that rigid legs are flex = 0; `Compliance.from_k(k)`
+    takes k in N/mm. Needs a platform mass (table file) and/or a `payload` column."""
+
+    flex: Float[Array, "6"]
+    name: ClassVar[str] = "compliance"
+    fields: ClassVar[tuple] = ("flex",)
+    needs: ClassVar[tuple] = ("mass",)
+    typical: ClassVar[dict] = {"flex": 1 / 2.0e4}
+    prior: ClassVar[dict] = {"flex": (0.0, 1e-3)}
+    source: ClassVar[str] = (
+        "axial stiffness of a roller-screw cylinder with its bearings and two U-joints: "
+        "10-50 N/µm (k = 2e4 N/mm typical, flex 5e-5 mm/N)"
+    )
+
+    def __init__(self, flex=0.0):
+        self.flex = _legs(flex)
+
+    @classmethod
+    def from_k(cls, k) -> "Compliance":
+        return cls(1.0 / jnp.asarray(k, dtype=jnp.float64))
+
+    @property
+    def k(self):
+        return 1.0 / self.flex
+
+    def __call__(self, table, pose, s, ctx):
+        return self.flex * leg_forces(table, pose, ctx.payload)
+
+
+class Rehoming(AbstractEffect):
+    """Leg zeros that shift between recording sessions: c_i,session, mm (first session 0).
+    `offsets` (S−1, 6): one row per later session. Needs the `session` column."""
+
+    offsets: Float[Array, "S 6"]
+    name: ClassVar[str] = "rehoming"
+    fields: ClassVar[tuple] = ("offsets",)
+    needs: ClassVar[tuple] = ("session",)
+    typical: ClassVar[dict] = {"offsets": 0.03}
+    prior: ClassVar[dict] = {"offsets": (-0.5, 0.5)}
+    source: ClassVar[str] = "repeatability of a homing switch plus index pulse: 5-50 µm per leg"
+
+    def __init__(self, offsets=np.zeros((0, 6))):
+        self.offsets = jnp.asarray(offsets, dtype=jnp.float64).reshape(-1, 6)
+
+    @classmethod
+    def null(cls, n_sessions: int = 1) -> "Rehoming":
+        return cls(np.zeros((max(n_sessions - 1, 0), 6)))
+
+    def __call__(self, table, pose, s, ctx):
+        rows = jnp.concatenate([jnp.zeros((1, 6)), self.offsets])
+        return rows[jnp.clip(ctx.session, 0, rows.shape[0] - 1)]
+
+
+EFFECTS: dict[str, type[AbstractEffect]] = {
+    c.name: c for c in (Spiral, LeadScale, Backlash, PeriodicLead, Thermal, Compliance, Rehoming)
+}
 
 Effects = Mapping[str, AbstractEffect]
 

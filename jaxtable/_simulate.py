@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._api import actuator_command, forward
+from ._context import Context, batch_context, directions
 from ._data import Measurements
 from ._instrument import Instrument, observe
 from ._table import Table, replace
@@ -78,28 +79,59 @@ def simulate(
     compensate: bool = True,
     frame=(0, 0, 0, 0, 0, 0),
     target=(0, 0, 0, 0, 0, 0),
-    session: str = "1",
+    session="1",
+    temperature=None,
+    payload=None,
     seed: int = 0,
 ) -> Measurements:
     """Measurements of the `true` table driven by a controller that believes `nominal`.
 
-    The controller commands `actuator_command(nominal, poses, compensate)`; the true table
-    (with `effects`, default its own hardware effects: the spiral term) settles at the exact
-    forward-kinematics pose; the instrument (`frame`, `target`: mm / rad) reads it with its
-    noise. Returns the rows with commanded lengths, the instrument's columns and its σ.
+    The controller commands `actuator_command(nominal, poses, compensate)` (rows in the order
+    the table visits them); the true table (with `effects`, default its own hardware effects:
+    the spiral term) settles at the exact forward-kinematics pose in each stop's context
+    (direction of travel from the row order, `temperature` °C and `payload` kg: scalars or
+    (N,), `session`: one label or (N,) labels); the instrument (`target` (6,), `frame` (6,)
+    or one row per session, mm / rad) reads it with its noise. Returns the rows with
+    commanded lengths, the instrument's columns and its σ (and temperature / payload if
+    given).
     """
     poses = np.asarray(poses, dtype=float)
+    n = len(poses)
     cmd = np.asarray(actuator_command(nominal, poses, compensate))
-    actual = forward(true, cmd, effects=effects, nominal=nominal, guess=poses)
-    frame = jnp.asarray(frame, dtype=jnp.float64)
+    labels = np.broadcast_to(np.asarray(session).astype(str), (n,))
+    sess = np.unique(labels, return_index=True)
+    order = [sess[0][k] for k in np.argsort(sess[1])]
+    index = np.array([order.index(lab) for lab in labels])
+    temp = None if temperature is None else np.broadcast_to(np.asarray(temperature, float), (n,))
+    load = None if payload is None else np.broadcast_to(np.asarray(payload, float), (n,))
+    ctx = Context(
+        directions(cmd),
+        20.0 if temp is None else temp,
+        0.0 if load is None else load,
+        index,
+    )
+    actual = forward(
+        true, cmd, effects=effects, nominal=nominal, guess=poses, context=batch_context(n, ctx)
+    )
+    frames = jnp.asarray(np.broadcast_to(np.asarray(frame, float), (len(order), 6)))
     target = jnp.asarray(target, dtype=jnp.float64)
-    reading = np.asarray(jax.vmap(lambda q: observe(q, frame, target))(actual))
+    reading = np.asarray(
+        jax.vmap(lambda q, k: observe(q, frames[k], target))(actual, jnp.asarray(index))
+    )
     noise = np.nan_to_num(np.asarray(instrument.noise, float))
     reading = reading + noise * np.random.default_rng(seed).normal(size=reading.shape)
     mask = instrument.mask
     measured = np.where(mask, reading, np.nan)
     sigma = np.where(mask, np.asarray(instrument.noise, float), np.nan) * np.ones_like(measured)
-    return Measurements(poses, measured, cmd, sigma, session=np.array([session] * len(poses)))
+    return Measurements(
+        poses,
+        measured,
+        cmd,
+        sigma,
+        None if temp is None else np.array(temp),
+        None if load is None else np.array(load),
+        session=np.array(labels),
+    )
 
 
 def concat(*parts: Measurements) -> Measurements:

@@ -56,8 +56,11 @@ def test_simulate_then_calibrate(tmp_path, capsys):
     nominal = jt.reference_table()
     report = (out / "report.md").read_text()
     # L0 within 4σ of the truth (σ from the report; the 10 µm joint errors are unmodelled)
-    sigma = [float(line.split("|")[3]) for line in report.splitlines()
-             if line.startswith("| zero_lengths[")]
+    sigma = [
+        float(line.split("|")[3])
+        for line in report.splitlines()
+        if line.startswith("| zero_lengths[")
+    ]
     err = np.asarray(fitted.zero_lengths) - np.asarray(true.zero_lengths)
     assert len(sigma) == 6 and np.all(np.abs(err) < 4 * np.asarray(sigma) + 0.012)
     assert not np.allclose(np.asarray(fitted.zero_lengths), np.asarray(nominal.zero_lengths))

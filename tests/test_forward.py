@@ -62,7 +62,7 @@ def test_s_dependent_effect_uses_newton_inverse(table):
         eps: jax.Array
         depends_on_extension = True
 
-        def __call__(self, table, pose, s):
+        def __call__(self, table, pose, s, ctx=None):
             return self.eps * s + 0.01 * jnp.sin(s / 5.0)
 
     eff = {"scale": Scale(jnp.full(6, 8.3e-5 * 50)), **jt.default_effects(table)}

@@ -1,0 +1,65 @@
+"""The recording context of one stop: what an effect may depend on besides pose and s."""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+REFERENCE_TEMPERATURE = 20.0  # °C
+
+
+class Context(eqx.Module):
+    """Context of ONE stop (batched: every leaf gets a leading axis).
+
+    - `direction` (6,): +1 if leg i last moved out (extending), −1 if in (backlash);
+    - `temperature` (): °C (thermal; default 20 °C, the reference);
+    - `payload` (): kg on the platform besides its own mass (compliance; at the platform CoG);
+    - `session` (): int, index of the recording session in order of first appearance
+      (rehoming; 0 = the first).
+    """
+
+    direction: Float[Array, "6"]
+    temperature: Float[Array, ""]
+    payload: Float[Array, ""]
+    session: Int[Array, ""]
+
+    def __init__(self, direction=1.0, temperature=REFERENCE_TEMPERATURE, payload=0.0, session=0):
+        direction = jnp.asarray(direction, dtype=jnp.float64)
+        if direction.ndim == 0:
+            direction = jnp.broadcast_to(direction, (6,))
+        self.direction = direction
+        self.temperature = jnp.asarray(temperature, dtype=jnp.float64)
+        self.payload = jnp.asarray(payload, dtype=jnp.float64)
+        self.session = jnp.asarray(session, dtype=jnp.int32)
+
+
+def batch_context(n: int, context: "Context | None" = None) -> Context:
+    """A Context with leading axis n on every leaf: `context` broadcast (None = the home
+    context); a leaf may be shared (no batch axis) or per stop (leading axis n)."""
+    c = Context() if context is None else context
+    direction = jnp.asarray(c.direction)
+    if direction.shape[:-1] not in ((), (n,)):
+        raise ValueError(
+            f"context direction has shape {direction.shape}, expected (6,) or ({n}, 6)"
+        )
+    for name in ("temperature", "payload", "session"):
+        if jnp.shape(getattr(c, name)) not in ((), (n,)):
+            raise ValueError(
+                f"context {name} has shape {jnp.shape(getattr(c, name))}, expected () or ({n},)"
+            )
+    return Context(
+        jnp.broadcast_to(direction, (n, 6)),
+        jnp.broadcast_to(c.temperature, (n,)),
+        jnp.broadcast_to(c.payload, (n,)),
+        jnp.broadcast_to(c.session, (n,)),
+    )
+
+
+def directions(cmd_lengths: np.ndarray) -> np.ndarray:
+    """(N, 6) ±1 from the row order of commanded lengths (N, 6): +1 if the leg last moved
+    out, −1 if in; the first row +1 and a leg that did not move keeps its sign."""
+    d = np.sign(np.diff(np.asarray(cmd_lengths), axis=0))
+    d = np.concatenate([np.ones((1, 6)), d])
+    rows = np.arange(len(d))[:, None]
+    last = np.maximum.accumulate(np.where(d != 0, rows, 0), axis=0)
+    return np.take_along_axis(d, last, axis=0)
