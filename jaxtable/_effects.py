@@ -17,7 +17,7 @@ magnitude and `prior` the range a fit or a simulation should stay in, each with 
 | backlash | −(w_i/2) d_i | w (6,) mm |
 | periodic_lead | a_i sin(2π s_i/p_i) + b_i cos(2π s_i/p_i), p = table lead | a, b (6,) mm |
 | thermal | α_i (T − 20 °C) L0_i | alpha (6,) 1/K |
-| compliance | F_i(q)/k_i, F axial force (tension +) from static equilibrium | flex = 1/k (6,) mm/N |
+| compliance | F_i(q)/k_i, F = axial force (tension +), static equilibrium | flex = 1/k (6,) mm/N |
 | rehoming | c_i,session (first session 0) | offsets (S−1, 6) mm |
 """
 
