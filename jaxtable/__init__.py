@@ -39,7 +39,7 @@ from ._effects import (  # noqa: E402
 from ._errormap import ErrorMap, Grid, PoseList, error_map, workspace_slice  # noqa: E402
 from ._errors import KinematicsError, TableFileError  # noqa: E402
 from ._forward import ForwardOptions  # noqa: E402
-from ._io import load_table, reference_table, save_table, table_from_dict  # noqa: E402
+from ._io import load_model, load_table, reference_table, save_table, table_from_dict  # noqa: E402
 from ._montecarlo import monte_carlo  # noqa: E402
 from ._rotation import euler_rate_matrix, paper_rotation_matrix, rotation_matrix  # noqa: E402
 from ._sensitivity import paper_error_jacobian, pose_sensitivity  # noqa: E402
@@ -91,6 +91,7 @@ __all__ = [
     "forward_solve",
     "joint_bend",
     "leg_lengths",
+    "load_model",
     "load_table",
     "paper_rod_rotation",
     "paper_rotation_matrix",

@@ -71,7 +71,7 @@ def table_from_dict(doc: dict, where: str = "table") -> Table:
     missing = [k for k in REQUIRED if k not in doc]
     if missing:
         raise TableFileError(f"{where}: missing key(s) {', '.join(missing)}")
-    unknown = [k for k in doc if k not in REQUIRED + OPTIONAL]
+    unknown = [k for k in doc if k not in REQUIRED + OPTIONAL + ("effects",)]
     if unknown:
         raise TableFileError(
             f"{where}: unknown key(s) {', '.join(unknown)}; allowed: "
@@ -104,6 +104,85 @@ def table_from_dict(doc: dict, where: str = "table") -> Table:
     return table
 
 
+# file field -> (effect field, converter file->internal, converter internal->file)
+_EFFECT_FILE_FIELDS = {
+    "compliance": {"k": ("flex", lambda k: 1.0 / k, lambda f: 1.0 / f)},
+}
+
+
+def effects_from_dict(doc: dict, where: str = "table") -> dict:
+    """The `[effects.NAME]` tables of a table file -> {name: effect Module}. Field values are
+    a scalar (all legs) or 6 values (rehoming: rows of 6 per later session); compliance is
+    written as `k` (N/mm)."""
+    from ._effects import EFFECTS
+
+    section = doc.get("effects", {})
+    if not isinstance(section, dict):
+        raise TableFileError(f"{where}: 'effects' must be a table of [effects.NAME] tables")
+    out = {}
+    for name, fields in section.items():
+        if name not in EFFECTS:
+            raise TableFileError(
+                f"{where}: unknown effect [effects.{name}]; known: {', '.join(EFFECTS)}"
+            )
+        cls = EFFECTS[name]
+        conv = _EFFECT_FILE_FIELDS.get(name, {})
+        allowed = [f for f in cls.fields if f not in {c[0] for c in conv.values()}] + list(conv)
+        kwargs = {}
+        for key, value in fields.items():
+            if key not in allowed:
+                raise TableFileError(
+                    f"{where}: [effects.{name}] has unknown key '{key}'; allowed: "
+                    f"{', '.join(allowed)}"
+                )
+            try:
+                arr = np.asarray(value, dtype=float)
+            except (TypeError, ValueError):
+                raise TableFileError(f"{where}: [effects.{name}] '{key}' is not numeric") from None
+            if key in conv:
+                field_name, to_internal, _ = conv[key]
+                arr = to_internal(arr)
+            else:
+                field_name = key
+            kwargs[field_name] = arr
+        try:
+            out[name] = cls(**kwargs)
+        except (TypeError, ValueError) as e:
+            raise TableFileError(f"{where}: [effects.{name}]: {e}") from None
+    return out
+
+
+def effects_to_toml(effects: dict) -> str:
+    """`[effects.NAME]` tables for `effects` (inverse of `effects_from_dict`)."""
+    lines = []
+    for name in sorted(effects):
+        eff = effects[name]
+        conv = _EFFECT_FILE_FIELDS.get(name, {})
+        lines += ["", f"[effects.{name}]"]
+        written = set()
+        for key, (field_name, _, to_file) in conv.items():
+            lines.append(f"{key} = {_fmt(to_file(np.asarray(getattr(eff, field_name))))}")
+            written.add(field_name)
+        for f in type(eff).fields:
+            if f in written:
+                continue
+            v = np.asarray(getattr(eff, f))
+            if v.ndim == 2:
+                lines.append(f"{f} = [" + ", ".join(_fmt(r) for r in v) + "]")
+            else:
+                lines.append(f"{f} = {_fmt(v)}")
+    return "\n".join(lines) + ("\n" if lines else "")
+
+
+def load_model(path) -> tuple[Table, dict | None]:
+    """Read a table file and its `[effects.NAME]` tables: (table, effects), effects None when
+    the file has none (then the table's hardware effects apply)."""
+    path = Path(path)
+    doc = read_toml(path, TableFileError, "table")
+    table = table_from_dict(doc, where=str(path))
+    return table, (effects_from_dict(doc, str(path)) if "effects" in doc else None)
+
+
 def read_toml(path: Path, error: type[Exception], kind: str) -> dict:
     """Parse a TOML file; a missing file or bad TOML raises `error` naming the file."""
     try:
@@ -116,14 +195,14 @@ def read_toml(path: Path, error: type[Exception], kind: str) -> dict:
 
 
 def load_table(path) -> Table:
-    """Read a table file (TOML, DESIGN.md schema) and validate it.
+    """Read a table file (TOML, DESIGN.md schema) and validate it (its `[effects.NAME]`
+    tables are checked too; `load_model` returns them).
 
     Raises TableFileError naming the file and the offending key/row: a missing or unknown
     key, a wrong shape, a zero or non-unit joint axis, an axis parallel to its leg at home,
     a home pose outside the stroke.
     """
-    path = Path(path)
-    return table_from_dict(read_toml(path, TableFileError, "table"), where=str(path))
+    return load_model(path)[0]
 
 
 def reference_table() -> Table:
@@ -172,7 +251,11 @@ def table_to_toml(table: Table, header: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-def save_table(table: Table, path, header: str = "") -> None:
-    """Write `table` to `path` as TOML (angles in degrees). `load_table` reads it back exactly."""
+def save_table(table: Table, path, header: str = "", effects: dict | None = None) -> None:
+    """Write `table` to `path` as TOML (angles in degrees), with `effects` as
+    `[effects.NAME]` tables. `load_table` / `load_model` read it back exactly."""
     check_table(table)
-    Path(path).write_text(table_to_toml(table, header))
+    text = table_to_toml(table, header)
+    if effects:
+        text += effects_to_toml(effects)
+    Path(path).write_text(text)
