@@ -1,0 +1,228 @@
+"""Markdown, figures and JSON of a diagnosis (shared by `jaxtable diagnose` and studies)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ._diagnose import SIGNATURE_OF, Diagnosis, leg_residuals, signatures
+from ._effects import EFFECTS
+from ._map_report import _plt
+
+UNITS = {
+    "lead": "mm/rev",
+    "eps": "",
+    "w": "mm",
+    "a": "mm",
+    "b": "mm",
+    "alpha": "1/K",
+    "flex": "mm/N",
+    "offsets": "mm",
+}
+
+
+def _binned(x, y, bins=12):
+    """Mean and standard error of y in bins of x (or per distinct value when few)."""
+    x, y = np.asarray(x).reshape(-1), np.asarray(y).reshape(-1)
+    vals = np.unique(x)
+    if len(vals) <= 6:
+        groups = [x == v for v in vals]
+        centres = vals
+    else:
+        edges = np.quantile(x, np.linspace(0, 1, bins + 1))
+        idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, bins - 1)
+        groups = [idx == k for k in range(bins)]
+        centres = np.array([x[g].mean() if g.any() else np.nan for g in groups])
+    mean = np.array([y[g].mean() if g.any() else np.nan for g in groups])
+    err = np.array([y[g].std() / np.sqrt(max(g.sum(), 1)) if g.any() else np.nan for g in groups])
+    return centres, mean, err
+
+
+def signature_figure(diag: Diagnosis, path: Path) -> Path | None:
+    """Residuals of the base fit (leg-length equivalent, mm) against every signature the
+    library's effects respond to, binned means ± standard error over all legs."""
+    res = leg_residuals(diag, diag.base)
+    if res is None:
+        return _column_figure(diag, path)
+    sig = signatures(diag)
+    names = [k for k in sig if k != "row"]
+    plt = _plt()
+    fig, axes = plt.subplots(2, 4, figsize=(15, 6.5))
+    for ax, name in zip(axes.ravel(), names + ["row"]):
+        x = sig[name]
+        ax.plot(x.reshape(-1), 1e3 * res.reshape(-1), ".", ms=1.5, color="0.75")
+        c, m, e = _binned(x, res)
+        ax.errorbar(c, 1e3 * m, 1e3 * e, fmt="o-", color="C3", ms=3)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel(name)
+        ax.set_ylabel("leg residual (µm)")
+    fig.suptitle(
+        "Geometric model: residuals (leg-length equivalent) against the effects' signatures"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _column_figure(diag: Diagnosis, path: Path) -> Path:
+    """Without all six columns: residual of each measured column against the commanded
+    pose DOF with the widest range and the row."""
+    cal = diag.base
+    mask = diag.setup.mask
+    sigma = np.where(mask, 1.0 / np.where(mask, np.asarray(diag.setup.problem.weight), 1.0), 0)
+    res = -cal.residual * sigma
+    cmd = diag.data.cmd_pose
+    k = int(np.argmax(np.ptp(cmd, axis=0)))
+    cols = np.flatnonzero(mask.any(0))
+    plt = _plt()
+    fig, axes = plt.subplots(len(cols), 2, figsize=(10, 2.8 * len(cols)), squeeze=False)
+    for r, c in enumerate(cols):
+        unit, f = ("mm", 1.0) if c < 3 else ("arcsec", 206264.806)
+        name = "x y z roll pitch yaw".split()[c]
+        axes[r, 0].plot(cmd[:, k], f * res[:, c], "o", ms=3)
+        axes[r, 0].set_xlabel("commanded " + "x y z roll pitch yaw".split()[k])
+        axes[r, 1].plot(np.arange(len(res)), f * res[:, c], "o-", ms=3)
+        axes[r, 1].set_xlabel("row")
+        for a in axes[r]:
+            a.set_ylabel(f"{name} residual ({unit})")
+            a.axhline(0, color="k", lw=0.5)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def effect_figures(diag: Diagnosis, out: Path) -> list[Path]:
+    """For each selected effect: leg residuals against its signature before it was added
+    and with the final model."""
+    paths = []
+    sig = signatures(diag)
+    after = leg_residuals(diag, diag.final)
+    if after is None:
+        return paths
+    plt = _plt()
+    for step in diag.steps:
+        if step.added is None:
+            continue
+        before = leg_residuals(diag, step.fit)
+        key = SIGNATURE_OF[step.added]
+        x = sig[key]
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+        for ax, res, title in (
+            (axes[0], before, f"model {' + '.join(step.model)}"),
+            (axes[1], after, f"final model (+ {', '.join(diag.selected)})"),
+        ):
+            ax.plot(x.reshape(-1), 1e3 * res.reshape(-1), ".", ms=2, color="0.7")
+            c, m, e = _binned(x, res)
+            ax.errorbar(c, 1e3 * m, 1e3 * e, fmt="o-", color="C3", ms=3)
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_xlabel(key)
+            ax.set_title(title, fontsize=9)
+        axes[0].set_ylabel("leg residual (µm)")
+        fig.suptitle(f"{step.added}: residuals against its signature, before and after")
+        fig.tight_layout()
+        p = out / f"effect_{step.added}.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    return paths
+
+
+def _fmt_params(params: dict) -> str:
+    parts = []
+    for f, (v, s) in params.items():
+        unit = UNITS.get(f, "")
+        vals = ", ".join(
+            f"{a:.3g}±{b:.2g}" if np.isfinite(b) else f"{a:.3g}±inf" for a, b in zip(v, s)
+        )
+        parts.append(f"{f} [{unit}] = [{vals}]")
+    return "; ".join(parts)
+
+
+def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
+    lines = [
+        f"# Diagnosis of {source}",
+        "",
+        f"{len(diag.data)} rows, measured columns: {', '.join(diag.data.measured_columns)}; "
+        f"sessions: {len(diag.data.sessions)}. Start model: rigid geometry (42 parameters, "
+        "joints modulo the rigid motions the instrument frame absorbs) + instrument frame per "
+        "session and target offset.",
+        "",
+        f"**Selected effects:** {', '.join(diag.selected) if diag.selected else 'none'}. "
+        f"**Unexplained structure:** {'yes' if diag.unexplained else 'no'} "
+        f"(χ² test at false-alarm rate {diag.alpha:g}).",
+        "",
+        "| | fit RMS (σ units) | held-out RMS (σ units, k-fold) |",
+        "|---|---|---|",
+        f"| geometric model | {diag.rms_before:.3f} | {diag.heldout_rms_before:.3f} |",
+        f"| final model | {diag.rms_after:.3f} | {diag.heldout_rms_after:.3f} |",
+        "",
+        "RMS per column (mm / rad), geometric -> final: "
+        + ", ".join(
+            f"{c} {diag.base.rms_after[c]:.4g} -> {diag.final.rms_after[c]:.4g}"
+            for c in diag.final.rms_after
+        ),
+        "",
+        "## Steps",
+        "",
+    ]
+    for k, step in enumerate(diag.steps):
+        lines += [
+            f"### Step {k + 1}: model {' + '.join(step.model)}",
+            "",
+            f"χ²/dof = {step.chi2:.1f}/{step.dof} (p = {step.p_value:.3g}), "
+            f"RMS {step.rms:.3f} σ, held-out RMS {step.heldout_rms:.3f} σ. "
+            f"Decision: {step.decision}.",
+            "",
+            "| candidate | ΔBIC | held-out gain | share of excess χ² | fitted parameters |",
+            "|---|---|---|---|---|",
+        ]
+        for c in step.candidates:
+            lines.append(
+                f"| {c.effect} | {c.delta_bic:.1f} | {100 * c.heldout_gain:+.1f} % | "
+                f"{100 * c.share:.0f} % | {_fmt_params(c.params)} |"
+            )
+        lines.append("")
+    if diag.not_applicable:
+        lines += [
+            "Not applicable to these data: "
+            + "; ".join(f"{k} ({v})" for k, v in diag.not_applicable.items()),
+            "",
+        ]
+    if diag.selected:
+        lines += ["## Fitted effect parameters (final model, ±1σ)", ""]
+        for name in diag.selected:
+            lines.append(f"- **{name}**: {_fmt_params(diag.effect_params(name))}")
+            lines.append(f"  (prior source: {EFFECTS[name].source})")
+        lines.append("")
+    lines += ["## Figures", ""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
+    return "\n".join(lines)
+
+
+def _finite(x):
+    """JSON-safe copy: non-finite floats (an unidentifiable parameter's σ) become null."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, (np.integer, np.bool_)):
+        return x.item()
+    return x
+
+
+def write_report(diag: Diagnosis, out: Path, source: str, json_path: Path | None = None):
+    """Write report.md, figures and (optionally) the JSON into `out`; return the paths."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    figures = [signature_figure(diag, out / "residual_signatures.png")]
+    figures += effect_figures(diag, out)
+    figures = [p for p in figures if p is not None]
+    (out / "report.md").write_text(markdown(diag, figures, source))
+    if json_path is not None:
+        json_path = Path(json_path)
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(_finite(diag.as_json()), indent=2, allow_nan=False))
+    return [out / "report.md"] + figures
