@@ -152,7 +152,7 @@ _residual_jit = eqx.filter_jit(_residual)
 
 
 @eqx.filter_jit
-def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_newton"):
+def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_newton", rcond=1e-6):
     """Gauss-Newton in Jacobi-scaled variables u (θ = θ0 + D·mask·u, D = 1 / column norms of the
     Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps. `mask` (P,)
     (0/1, traced) freezes parameters without recompiling, so nested models and folds of one
@@ -169,12 +169,13 @@ def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_n
     def res_scaled(u, _):
         return res_flat(flat0 + D * u)
 
-    # Gauss-Newton with an SVD least-squares step: the problems are nearly linear (µm-level
-    # corrections, frames initialised in closed form), so it converges in a few steps where
-    # LM's trust region takes tens; the SVD gives the minimum-norm step along frozen (masked)
-    # and unidentifiable directions.
+    # Gauss-Newton with a truncated-SVD least-squares step: the problems are nearly linear
+    # (µm-level corrections, frames initialised in closed form), so it converges in a few
+    # steps where LM's trust region takes tens; singular values below rcond × the largest
+    # (frozen, i.e. masked, and unidentifiable directions) get no step, so they stay at their
+    # start values instead of drifting.
     if method == "gauss_newton":
-        solver = optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.SVD())
+        solver = optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.SVD(rcond=rcond))
     else:
         solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(
@@ -471,8 +472,9 @@ def fit(
     """Fit the parameters of `st` where `free_mask` (P,) is 1 (default: all), using only the
     data rows `rows` (bool (N,) or indices; default all: held-out rows get zero weight, so
     every fold and nested model of one data set reuses one compilation). `method`:
-    "gauss_newton" (optimistix GaussNewton, SVD least-squares steps; default) or
-    "levenberg_marquardt" (optimistix LM: same optimum, several times more steps here)."""
+    "gauss_newton" (optimistix GaussNewton, truncated-SVD least-squares steps; default,
+    falling back to LM when a step leaves the region where the forward kinematics converge)
+    or "levenberg_marquardt" (optimistix LM: same optimum, several times more steps here)."""
     problem, layout = st.problem, st.layout
     theta0 = st.theta0 if theta0 is None else theta0
     flat0, _ = ravel_pytree(theta0)
@@ -489,9 +491,13 @@ def fit(
     before = np.asarray(_residual_jit(theta0, (problem, layout))).reshape(-1, 6)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
-    value, code, steps, J, codes = _solve(
-        problem, layout, theta0, jnp.asarray(fm), rtol, atol, max_steps, method
-    )
+    args = (problem, layout, theta0, jnp.asarray(fm), rtol, atol, max_steps)
+    value, code, steps, J, codes = _solve(*args, method, identifiability_tol)
+    if method == "gauss_newton" and (int(code) != 0 or np.any(np.asarray(codes)[use] != 0)):
+        # undamped steps along weakly determined directions left the region where the
+        # forward kinematics converge (e.g. an x-only instrument on a line): LM's damping
+        # keeps them bounded
+        value, code, steps, J, codes = _solve(*args, "levenberg_marquardt", identifiability_tol)
     if np.any(np.asarray(codes)[use] != 0):
         bad = np.flatnonzero((np.asarray(codes) != 0) & use)
         raise RuntimeError(
