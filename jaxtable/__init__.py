@@ -21,8 +21,11 @@ from ._api import (  # noqa: E402
     rod_rotation,
     spiral_extension,
 )
+from ._calibrate import Calibration, calibrate, fit, setup, validate  # noqa: E402
 from ._context import Context  # noqa: E402
+from ._data import DataFileError, Measurements, load_measurements, save_measurements  # noqa: E402
 from ._design import symmetric_table  # noqa: E402
+from ._diagnose import Diagnosis, diagnose, heldout_rms  # noqa: E402
 from ._effects import (  # noqa: E402
     EFFECTS,
     AbstractEffect,
@@ -39,10 +42,14 @@ from ._effects import (  # noqa: E402
 from ._errormap import ErrorMap, Grid, PoseList, error_map, workspace_slice  # noqa: E402
 from ._errors import KinematicsError, TableFileError  # noqa: E402
 from ._forward import ForwardOptions  # noqa: E402
+from ._instrument import interferometer, point_tracker, tracker6  # noqa: E402
 from ._io import load_model, load_table, reference_table, save_table, table_from_dict  # noqa: E402
 from ._montecarlo import monte_carlo  # noqa: E402
+from ._poses import compare_with_random, evaluate_design, pose_jacobians, select_poses  # noqa: E402
+from ._posterior import PosteriorResult, corner_plot, plot_bands, posterior, predictive_bands  # noqa: E402
 from ._rotation import euler_rate_matrix, paper_rotation_matrix, rotation_matrix  # noqa: E402
 from ._sensitivity import paper_error_jacobian, pose_sensitivity  # noqa: E402
+from ._simulate import perturb_table, plan_grid, plan_random, plan_swing, plan_x_line, simulate  # noqa: E402
 from ._table import Table, check_table, replace  # noqa: E402
 from ._tolerance import (  # noqa: E402
     ToleranceFileError,
@@ -53,6 +60,36 @@ from ._tolerance import (  # noqa: E402
 from ._workspace import Workspace  # noqa: E402
 
 __all__ = [
+    "DataFileError",
+    "Measurements",
+    "load_measurements",
+    "save_measurements",
+    "Calibration",
+    "calibrate",
+    "fit",
+    "setup",
+    "validate",
+    "perturb_table",
+    "plan_grid",
+    "plan_random",
+    "plan_swing",
+    "plan_x_line",
+    "simulate",
+    "interferometer",
+    "point_tracker",
+    "tracker6",
+    "PosteriorResult",
+    "corner_plot",
+    "plot_bands",
+    "posterior",
+    "predictive_bands",
+    "compare_with_random",
+    "evaluate_design",
+    "pose_jacobians",
+    "select_poses",
+    "Diagnosis",
+    "diagnose",
+    "heldout_rms",
     "AbstractEffect",
     "Backlash",
     "Compliance",

@@ -1,0 +1,519 @@
+"""Posterior of a calibration by MCMC (emcee), and what it predicts over the workspace.
+
+The sampled density is the likelihood of the fit, through the exact forward kinematics:
+
+    log p(θ | data) = −½ Σ r(θ)² + log prior(θ)
+
+with r the weighted residuals (reading − measured) / σ of `_calibrate._residual`, over the
+parameters the Levenberg-Marquardt fit estimated (table leaves, effect fields, instrument
+frames and target). Frozen parameters stay at their fitted values.
+
+Coordinates. The walkers move in the whitened coordinates of the LM solution,
+θ = θ_LM + L z, where L Lᵀ is the LM covariance restricted to the identifiable directions
+(rank r, z ∈ R^r): the posterior in z is close to N(0, I), so the differential-evolution moves
+mix in a few tens of steps whatever the units (mm, rad, mm/rev) and correlations. Directions
+the data cannot determine (std = inf in the LM report) are not sampled: they are held at their
+LM values and listed in `PosteriorResult.fixed_directions`; a parameter that takes part in one
+keeps std = inf in the result (its samples are conditional on the fixed combination).
+
+Prior. `prior_scale = s` (default 100): a Gaussian N(0, s²) on each whitened coordinate, i.e.
+N(θ_LM, s² Σ_LM) on the identifiable subspace: proper, and 100 times wider than the
+likelihood, so it changes posterior standard deviations by a factor 1/√(1 + 1/s²) (5e-5 for
+s = 100). `prior_scale=None`: flat (improper) prior on the identifiable subspace. Forward
+kinematics that fail to converge return the commanded pose, whose residual is large: such
+parameter values get a negligible probability rather than NaN; a non-finite log-probability
+is mapped to −inf (rejected).
+"""
+
+import warnings
+from dataclasses import dataclass, field
+
+import emcee
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from ._api import actuator_command
+from ._calibrate import Calibration, Setup, _build, _residual
+from ._forward import ForwardOptions, forward_one
+
+__all__ = [
+    "PosteriorResult",
+    "PredictiveBands",
+    "SnookerMove",
+    "corner_plot",
+    "plot_bands",
+    "posterior",
+    "predictive_bands",
+]
+
+POSE_COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
+ARCSEC_PER_RAD = 180 * 3600 / np.pi
+
+
+class SnookerMove(emcee.moves.DESnookerMove):
+    """Differential-evolution snooker move (ter Braak & Vrugt 2008), vectorised.
+
+    emcee <= 3.1.6 builds the snooker direction as δ/√|δ| instead of the unit vector δ/|δ|
+    and uses half the Jacobian exponent, (d−1)/2: its chains are under-dispersed (pooled std
+    ≈ 0.90 of the truth on an 18-D standard normal, 0.96 in 6-D; fixed upstream in emcee
+    PR #531, Dec 2024). This move uses the unit vector and the factor (|q−z|/|x−z|)^(d−1) of
+    the paper; on the same normal it gives std 1.00.
+
+    It splits the ensemble in two halves, like `DEMove`, and draws the three distinct
+    helpers z, z1, z2 from the other half (emcee's uses four quarters): every call of the
+    log-probability then has the same batch shape, W/2, and compiles once.
+    """
+
+    def __init__(self, gammas: float = 1.7, **kwargs):
+        self.gammas = gammas
+        emcee.moves.RedBlueMove.__init__(self, nsplits=2, **kwargs)
+
+    def get_proposal(self, s, c, random):
+        ns, ndim = s.shape
+        pool = np.concatenate(c, axis=0)
+        if len(pool) < 3:
+            raise ValueError("SnookerMove needs at least 6 walkers")
+        pick = np.argsort(random.random(size=(ns, len(pool))), axis=1)[:, :3]
+        z, z1, z2 = pool[pick[:, 0]], pool[pick[:, 1]], pool[pick[:, 2]]
+        delta = s - z
+        norm = np.linalg.norm(delta, axis=1, keepdims=True)
+        u = delta / norm
+        q = s + u * self.gammas * np.sum(u * (z1 - z2), axis=1, keepdims=True)
+        factor = (ndim - 1.0) * (np.log(np.linalg.norm(q - z, axis=1)) - np.log(norm[:, 0]))
+        return q, factor
+
+
+@dataclass(frozen=True)
+class PosteriorResult:
+    """Outcome of `posterior`.
+
+    - `names` (P,): the fitted parameters, as `Calibration.names`;
+    - `samples` (S, P): posterior draws after burn-in and thinning, all walkers pooled, in
+      parameter units (mm, rad, mm/rev, ... as `Calibration.value`); `log_prob` (S,);
+    - `mean`, `std` (P,): of the samples (std = inf where the parameter takes part in an
+      unidentifiable direction, as in the LM report); `lm_value`, `lm_std` (P,): the LM fit;
+    - `identifiable` (P,) bool; `fixed_directions`: the LM fit's unidentifiable directions,
+      (relative singular value, [(name, weight), ...]) each, held fixed, not sampled;
+    - `tau` (r,): integrated autocorrelation time of each whitened coordinate, in steps;
+    - `acceptance`: mean acceptance fraction of the walkers;
+    - `short_chain`: True when the chain is shorter than 50 τ (a warning was emitted);
+    - `n_walkers`, `n_steps`, `burn`, `thin`: the run; `rank` r: sampled dimensions;
+    - `theta_lm`, `index`: the LM parameter pytree and the positions of `names` in its flat
+      vector (used by `predictive_bands`); `whitening` (P_all, r): L in θ = θ_LM + L z.
+    """
+
+    names: list
+    samples: np.ndarray
+    log_prob: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    lm_value: np.ndarray
+    lm_std: np.ndarray
+    identifiable: np.ndarray
+    fixed_directions: list
+    tau: np.ndarray
+    acceptance: float
+    short_chain: bool
+    n_walkers: int
+    n_steps: int
+    burn: int
+    thin: int
+    rank: int
+    theta_lm: dict = field(repr=False)
+    index: np.ndarray = field(repr=False)
+    whitening: np.ndarray = field(repr=False)
+
+    def summary(self) -> str:
+        """A markdown table: parameter, LM value ± std, posterior mean ± std, std ratio."""
+        lines = [
+            f"emcee: {self.n_walkers} walkers × {self.n_steps} steps, burn-in {self.burn}, "
+            f"thin {self.thin}, {len(self.samples)} samples; τ max {self.tau.max():.1f} "
+            f"steps; acceptance {self.acceptance:.2f}"
+            + ("; CHAIN SHORTER THAN 50 τ" if self.short_chain else ""),
+            "",
+            "| parameter | LM value | LM std | posterior mean | posterior std | ratio |",
+            "|---|---|---|---|---|---|",
+        ]
+        for k, n in enumerate(self.names):
+            ratio = self.std[k] / self.lm_std[k] if np.isfinite(self.lm_std[k]) else np.nan
+            lines.append(
+                f"| {n} | {self.lm_value[k]:.6g} | {self.lm_std[k]:.3g} | {self.mean[k]:.6g} "
+                f"| {self.std[k]:.3g} | {ratio:.3f} |"
+            )
+        if self.fixed_directions:
+            lines.append("")
+            lines.append(f"{len(self.fixed_directions)} unidentifiable direction(s) held fixed.")
+        return "\n".join(lines)
+
+
+def _whitening(cal: Calibration):
+    """(P_free, r) L with L Lᵀ = the LM covariance (a pseudo-inverse of rank r = cal.rank):
+    eigenvectors of its correlation form, so mm, rad and mm/rev do not mix in the cut."""
+    cov = np.asarray(cal.covariance, float)
+    d = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    on = d > 0
+    dd = np.where(on, d, 1.0)
+    C = cov / np.outer(dd, dd)
+    lam, E = np.linalg.eigh(C)
+    r = int(cal.rank)
+    lam, E = lam[::-1][:r], E[:, ::-1][:, :r]
+    if r == 0 or lam[-1] <= 0:
+        raise ValueError("the calibration has no identifiable direction to sample")
+    return dd[:, None] * E * np.sqrt(lam), r
+
+
+@eqx.filter_jit
+def _log_prob_batch(z, problem, layout, template, center, L, inv_prior_var):
+    """Log-posterior (W,) of W walkers z (W, r): one vmapped residual evaluation."""
+    _, unravel = ravel_pytree(template)
+
+    def one(zi):
+        theta = unravel(center + L @ zi)
+        r = _residual(theta, (problem, layout))
+        lp = -0.5 * jnp.sum(r**2) - 0.5 * inv_prior_var * jnp.sum(zi**2)
+        return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
+
+    return jax.vmap(one)(z)
+
+
+def _free_index(st: Setup, cal: Calibration) -> np.ndarray:
+    pos = {n: k for k, n in enumerate(st.names)}
+    missing = [n for n in cal.names if n not in pos]
+    if missing:
+        raise ValueError(
+            f"the calibration's parameters {missing[:3]} are not in the setup: pass the Setup "
+            "the calibration was fitted from"
+        )
+    return np.array([pos[n] for n in cal.names], int)
+
+
+def posterior(
+    st: Setup,
+    cal: Calibration,
+    *,
+    n_walkers: int | None = None,
+    n_steps: int = 2000,
+    burn: int | None = None,
+    thin: int | None = None,
+    seed: int = 0,
+    progress: bool = True,
+    prior_scale: float | None = 100.0,
+    rows=None,
+) -> PosteriorResult:
+    """Sample the posterior of the parameters `cal` estimated from `st` (`cal = fit(st, ...)`).
+
+    - `n_walkers`: even, >= 2 r + 2 (default: max(16, 2 r + 2)), r the number of
+      identifiable directions (the sampled dimensions);
+    - `n_steps`: steps per walker; `burn`, `thin`: steps dropped at the start and kept every
+      `thin` (default: burn = max(n_steps // 5, 3 τ_max) capped at n_steps // 2, thin =
+      max(1, τ_max // 2));
+    - `prior_scale`: see the module docstring (None = flat); `rows`: the data rows the fit
+      used (as in `fit`; default all);
+    - moves: 0.8 `emcee.moves.DEMove` + 0.2 `SnookerMove` (a corrected DESnookerMove, see
+      its docstring); walkers start at N(0, I) in the whitened coordinates (the Laplace
+      approximation), so burn-in is short.
+
+    Emits a `UserWarning` (and sets `short_chain`) when the chain is shorter than 50 times
+    the integrated autocorrelation time (emcee's `AutocorrError`), then uses the estimate.
+    """
+    if cal.covariance is None:
+        raise ValueError("the calibration has no covariance (was it made by `fit`?)")
+    if n_steps < 10:
+        raise ValueError(f"n_steps must be at least 10, got {n_steps}")
+    if prior_scale is not None and not prior_scale > 0:
+        raise ValueError(f"prior_scale must be positive or None, got {prior_scale}")
+    if burn is not None and not 0 <= burn < n_steps:
+        raise ValueError(f"burn must be in [0, n_steps = {n_steps}), got {burn}")
+    if thin is not None and thin < 1:
+        raise ValueError(f"thin must be >= 1, got {thin}")
+    index = _free_index(st, cal)
+    Lf, r = _whitening(cal)
+    flat_lm, _ = ravel_pytree(cal.theta)
+    L = np.zeros((flat_lm.shape[0], r))
+    L[index] = Lf
+    if n_walkers is None:
+        n_walkers = max(16, 2 * r + 2)
+        n_walkers += n_walkers % 2
+    if n_walkers % 2 or n_walkers < 2 * r + 2:
+        raise ValueError(f"n_walkers must be even and >= 2 r + 2 = {2 * r + 2}, got {n_walkers}")
+
+    problem = st.problem
+    if rows is not None:
+        use = np.zeros(len(st.mask), bool)
+        use[np.asarray(rows)] = True
+        problem = eqx.tree_at(
+            lambda p: p.weight, problem, problem.weight * jnp.asarray(use, float)[:, None]
+        )
+    args = (
+        problem,
+        st.layout,
+        cal.theta,
+        flat_lm,
+        jnp.asarray(L),
+        jnp.asarray(0.0 if prior_scale is None else 1.0 / prior_scale**2),
+    )
+
+    def log_prob(z):
+        return np.asarray(_log_prob_batch(jnp.asarray(z), *args))
+
+    rng = np.random.default_rng(seed)
+    p0 = rng.normal(size=(n_walkers, r))
+    sampler = emcee.EnsembleSampler(
+        n_walkers,
+        r,
+        log_prob,
+        vectorize=True,
+        moves=[(emcee.moves.DEMove(), 0.8), (SnookerMove(), 0.2)],
+    )
+    # initial log-probabilities in two halves: every call then has the moves' batch shape W/2
+    lp0 = np.concatenate([log_prob(p0[: n_walkers // 2]), log_prob(p0[n_walkers // 2 :])])
+    state = emcee.State(p0, log_prob=lp0, random_state=np.random.RandomState(seed).get_state())
+    sampler.run_mcmc(state, n_steps, progress=progress)
+
+    short = False
+    try:
+        tau = np.asarray(sampler.get_autocorr_time())
+    except emcee.autocorr.AutocorrError as err:
+        tau = np.asarray(err.tau)
+        short = True
+    # a chain of a few steps can leave τ undefined (NaN): take the whole run as one τ then
+    tau_max = float(np.nanmax(tau)) if np.isfinite(tau).any() else float(n_steps)
+    if short:
+        warnings.warn(
+            f"posterior: the chain ({n_steps} steps) is shorter than 50 autocorrelation times "
+            f"(max τ ≈ {tau_max:.1f} steps): the estimates are rough; run >= "
+            f"{int(np.ceil(50 * tau_max))} steps",
+            UserWarning,
+            stacklevel=2,
+        )
+    if burn is None:
+        burn = min(max(n_steps // 5, int(np.ceil(3 * tau_max))), n_steps // 2)
+    if thin is None:
+        thin = max(1, int(tau_max // 2))
+    z = sampler.get_chain(discard=burn, thin=thin, flat=True)
+    lp = sampler.get_log_prob(discard=burn, thin=thin, flat=True)
+    samples = np.asarray(flat_lm)[index] + z @ Lf.T
+    ident = np.isfinite(cal.std)
+    mean = samples.mean(0)
+    std = np.where(ident, samples.std(0, ddof=1), np.inf)
+    return PosteriorResult(
+        names=list(cal.names),
+        samples=samples,
+        log_prob=lp,
+        mean=mean,
+        std=std,
+        lm_value=np.asarray(cal.value),
+        lm_std=np.asarray(cal.std),
+        identifiable=ident,
+        fixed_directions=list(cal.unidentifiable),
+        tau=tau,
+        acceptance=float(np.mean(sampler.acceptance_fraction)),
+        short_chain=short,
+        n_walkers=int(n_walkers),
+        n_steps=int(n_steps),
+        burn=int(burn),
+        thin=int(thin),
+        rank=int(r),
+        theta_lm=cal.theta,
+        index=index,
+        whitening=L,
+    )
+
+
+# --- plots ----------------------------------------------------------------------------------
+
+
+def _pick(result: PosteriorResult, max_params: int, params) -> list[int]:
+    names = result.names
+    if params is not None:
+        bad = [p for p in params if p not in names]
+        if bad:
+            raise ValueError(f"unknown parameter(s) {bad}; known: {names}")
+        return [names.index(p) for p in params]
+    if len(names) <= max_params:
+        return list(range(len(names)))
+    x = result.samples
+    sd = x.std(0)
+    ok = sd > 0
+    c = np.zeros((len(names), len(names)))
+    c[np.ix_(ok, ok)] = np.corrcoef(x[:, ok].T)
+    np.fill_diagonal(c, 0.0)
+    score = np.abs(c).max(1)
+    return sorted(np.argsort(-score, kind="stable")[:max_params].tolist())
+
+
+def corner_plot(result: PosteriorResult, path, max_params: int = 8, params=None, dpi: int = 80):
+    """Write a corner plot (PNG) of the posterior samples: histograms on the diagonal, with
+    the LM Gaussian N(value, std²) drawn over them, 2-D histograms below. Shows `params`
+    (names) or, when there are more than `max_params` parameters, the `max_params` most
+    correlated ones (largest |correlation| with another parameter). Returns the names shown.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    idx = _pick(result, max_params, params)
+    k = len(idx)
+    x = result.samples[:, idx]
+    size = max(4.0, 1.5 * k)
+    fig, axes = plt.subplots(k, k, figsize=(size, size), squeeze=False)
+    for i in range(k):
+        for j in range(k):
+            ax = axes[i, j]
+            if j > i:
+                ax.set_axis_off()
+                continue
+            if i == j:
+                ax.hist(x[:, i], bins=30, density=True, color="0.6")
+                m, s = result.lm_value[idx[i]], result.lm_std[idx[i]]
+                if np.isfinite(s) and s > 0:
+                    g = np.linspace(x[:, i].min(), x[:, i].max(), 100)
+                    ax.plot(g, np.exp(-0.5 * ((g - m) / s) ** 2) / (s * np.sqrt(2 * np.pi)), "r")
+                ax.set_yticks([])
+            else:
+                ax.hist2d(x[:, j], x[:, i], bins=30, cmap="Greys")
+            if i == k - 1:
+                ax.set_xlabel(result.names[idx[j]], fontsize=7)
+            else:
+                ax.set_xticklabels([])
+            if j == 0 and i > 0:
+                ax.set_ylabel(result.names[idx[i]], fontsize=7)
+            elif j > 0:
+                ax.set_yticklabels([])
+            ax.tick_params(labelsize=6)
+    fig.suptitle("posterior (grey) and LM Gaussian (red)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return [result.names[i] for i in idx]
+
+
+# --- posterior predictive pose error ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PredictiveBands:
+    """Posterior-predictive pose error over commanded poses.
+
+    - `poses` (Q, 6): commanded poses (mm, rad); `percentiles` (B,) in %;
+    - `bands` (B, Q, 6): percentiles over the posterior samples of the pose error
+      (pose reached − pose commanded), mm / rad;
+    - `lm` (Q, 6): the pose error predicted by the LM fit; `samples` (S, Q, 6): the errors of
+      the drawn sample tables; `failed`: number of (sample, pose) solves that did not
+      converge (their errors are NaN and left out of the percentiles).
+    """
+
+    poses: np.ndarray
+    percentiles: np.ndarray
+    bands: np.ndarray
+    lm: np.ndarray
+    samples: np.ndarray
+    failed: int
+
+
+@eqx.filter_jit
+def _pose_errors(thetas, problem, layout, s, poses, options):
+    """Pose error (S, Q, 6) and codes (S, Q) of S parameter pytrees (leading axis) at the
+    actuator extensions s (Q, 6) the controller gives for `poses` (Q, 6)."""
+
+    def per_sample(theta):
+        table, effects, _, _ = _build(problem, layout, theta)
+
+        def per_pose(si, qi):
+            q, code, _, _ = forward_one(table, effects, si, qi, options)
+            return q - qi, code
+
+        return jax.vmap(per_pose)(s, poses)
+
+    return jax.vmap(per_sample)(thetas)
+
+
+def predictive_bands(
+    st: Setup,
+    result: PosteriorResult,
+    poses,
+    *,
+    n_samples: int = 200,
+    percentiles=(2.5, 50.0, 97.5),
+    compensate: bool = True,
+    seed: int = 0,
+    options: ForwardOptions = ForwardOptions(),
+) -> PredictiveBands:
+    """Posterior-predictive pose error at commanded `poses` (Q, 6), mm / rad.
+
+    The controller believes the nominal table of `st` and commands its inverse kinematics
+    (`actuator_command(nominal, poses, compensate)`); each of `n_samples` posterior draws
+    (with the fitted effects, home context: direction +1, 20 °C, no payload) settles at the
+    exact forward-kinematics pose for those commands; its error is that pose minus the
+    commanded one. Returns percentile bands per pose and column, and the LM prediction.
+    Joint sets fitted modulo rigid motions (the gauge) are compared in that gauge.
+    """
+    poses = np.asarray(poses, float)
+    if poses.ndim != 2 or poses.shape[1] != 6 or not np.isfinite(poses).all():
+        raise ValueError(f"poses must be a finite (Q, 6) array, got shape {poses.shape}")
+    pct = np.asarray(percentiles, float)
+    if np.any((pct < 0) | (pct > 100)):
+        raise ValueError(f"percentiles must lie in [0, 100], got {pct}")
+    nominal = st.problem.nominal
+    cmd = np.asarray(actuator_command(nominal, poses, compensate))
+    s = jnp.asarray(cmd - np.asarray(nominal.zero_lengths))
+    flat_lm, unravel = ravel_pytree(result.theta_lm)
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(result.samples), min(n_samples, len(result.samples)), replace=False)
+    flats = np.tile(np.asarray(flat_lm), (len(pick) + 1, 1))
+    flats[1:, result.index] = result.samples[pick]
+    thetas = jax.vmap(unravel)(jnp.asarray(flats))
+    err, code = _pose_errors(thetas, st.problem, st.layout, s, jnp.asarray(poses), options)
+    err, code = np.asarray(err), np.asarray(code)
+    if code[0].any():
+        raise RuntimeError(
+            "forward kinematics of the LM table failed at pose(s) "
+            f"{(np.flatnonzero(code[0]) + 1).tolist()[:10]}"
+        )
+    samp = np.where((code[1:] == 0)[..., None], err[1:], np.nan)
+    bands = np.nanpercentile(samp, pct, axis=0)
+    return PredictiveBands(poses, pct, bands, err[0], samp, int((code[1:] != 0).sum()))
+
+
+def plot_bands(bands: PredictiveBands, path, columns=None, axis: int | None = None, dpi=80):
+    """Write a PNG of the predictive bands: one panel per pose column (µm for x, y, z; arcsec
+    for angles), the outer percentiles shaded, the median dashed and the LM prediction solid,
+    against the commanded coordinate `axis` (default: the pose column that varies most over
+    the poses, in mm or deg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = list(range(6)) if columns is None else [POSE_COLUMNS.index(c) for c in columns]
+    p = bands.poses
+    if axis is None:
+        spread = np.ptp(p, axis=0) * np.array([1, 1, 1, 1e3, 1e3, 1e3])
+        axis = int(np.argmax(spread))
+    xs = p[:, axis] * (1.0 if axis < 3 else 180 / np.pi)
+    order = np.argsort(xs)
+    xs = xs[order]
+    unit = np.array([1e3] * 3 + [ARCSEC_PER_RAD] * 3)
+    fig, axes = plt.subplots(len(cols), 1, figsize=(6, 1.6 * len(cols) + 0.6), sharex=True)
+    axes = np.atleast_1d(axes)
+    mid = len(bands.percentiles) // 2
+    for ax, c in zip(axes, cols):
+        b = bands.bands[:, order, c] * unit[c]
+        ax.fill_between(xs, b[0], b[-1], color="C0", alpha=0.3, lw=0)
+        ax.plot(xs, b[mid], "C0--", lw=1)
+        ax.plot(xs, bands.lm[order, c] * unit[c], "k-", lw=1)
+        ax.set_ylabel(f"{POSE_COLUMNS[c]} ({'µm' if c < 3 else 'arcsec'})", fontsize=8)
+        ax.tick_params(labelsize=7)
+    lo, hi = bands.percentiles[0], bands.percentiles[-1]
+    axes[0].set_title(
+        f"pose error: posterior {lo:g}–{hi:g} % band (shaded), median (dashed), LM (solid)",
+        fontsize=8,
+    )
+    axes[-1].set_xlabel(f"commanded {POSE_COLUMNS[axis]} ({'mm' if axis < 3 else 'deg'})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
