@@ -5,14 +5,13 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
 from ._context import Context
 from ._effects import Effects
-from ._linalg import solve_small
+from ._linalg import SmallLU, solve_small
 from ._model import length_residual
 from ._table import Table
 
@@ -42,7 +41,7 @@ def _newton(table, effects, s, guess, ctx, options):
         table, effects, s, ctx = args
         return length_residual(table, effects, y / scale, s, ctx)
 
-    solver = optx.Newton(options.rtol, options.atol, linear_solver=lx.LU())
+    solver = optx.Newton(options.rtol, options.atol, linear_solver=SmallLU())
     args = (table, effects, s, ctx)
     sol = optx.root_find(fn, solver, guess * scale, args, max_steps=options.max_steps, throw=False)
     y = sol.value

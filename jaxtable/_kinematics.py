@@ -8,10 +8,39 @@ wrap them with `jax.vmap`.
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._rotation import rotation_matrix
+from ._rotation import rotation_entries, rotation_matrix
 from ._table import Table, home_leg_vectors
 
 HOME = jnp.zeros(6)
+
+# Six 3-vectors are carried as a tuple of components (x, y, z), each of shape (6,): under
+# `vmap` every operation below is then elementwise on (N, 6) arrays, which XLA fuses into one
+# loop (no dot products over a minor axis of 3, no stacking). This is the layout that makes
+# the batched pose -> command map run at the transcendental-function limit (see the
+# benchmark); `leg_vectors` stacks the components for callers that want (6, 3).
+Vec3 = tuple[Array, Array, Array]
+
+
+def _columns(v: Float[Array, "6 3"]) -> Vec3:
+    return v[:, 0], v[:, 1], v[:, 2]
+
+
+def _rotate(R, v: Vec3) -> Vec3:
+    """R v for R given as nested row tuples (`rotation_entries`) or a (3, 3) array."""
+    x, y, z = v
+    return tuple(R[r][0] * x + R[r][1] * y + R[r][2] * z for r in range(3))
+
+
+def _dot(a: Vec3, b: Vec3) -> Array:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a: Vec3, b: Vec3) -> Vec3:
+    return (
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    )
 
 
 def platform_origin(table: Table, pose: Float[Array, "6"]) -> Float[Array, "3"]:
@@ -19,31 +48,42 @@ def platform_origin(table: Table, pose: Float[Array, "6"]) -> Float[Array, "3"]:
     return pose[:3] + jnp.array([0.0, 0.0, 1.0]) * table.home_height
 
 
+def _legs(table: Table, pose: Float[Array, "6"], R) -> Vec3:
+    """Components of l_i = t + R a_i^p - b_i, each (6,), mm."""
+    a = _rotate(R, _columns(table.platform_joints))
+    b = _columns(table.base_joints)
+    t = (pose[0], pose[1], pose[2] + table.home_height)
+    return tuple(t[k] + a[k] - b[k] for k in range(3))
+
+
 def leg_vectors(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6 3"]:
     """l_i = t + R a_i^p - b_i, base frame, mm. Shape (6, 3)."""
-    R = rotation_matrix(pose[3:])
-    return platform_origin(table, pose) + table.platform_joints @ R.T - table.base_joints
+    return jnp.stack(_legs(table, pose, rotation_entries(pose[3:])), axis=-1)
 
 
 def leg_lengths(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6"]:
     """|l_i|, joint-to-joint length of each leg, mm. Shape (6,)."""
-    return jnp.linalg.norm(leg_vectors(table, pose), axis=-1)
+    l = _legs(table, pose, rotation_entries(pose[3:]))
+    return jnp.sqrt(_dot(l, l))
 
 
 def _twist_sin_cos(table: Table, pose: Float[Array, "6"]):
-    """(s, c) = (u·(m×k), m·k) with m = n×u, k = j×u, unnormalised. Shapes (6,), (6,).
+    """(s, c) = r (sin β, cos β), r > 0, for the angle β between the planes (u, n) and (u, j)
+    about the unit leg axis u = l/|l|, n the base joint's base-fixed axis and j = R j^p the
+    platform joint's platform-fixed axis. Shapes (6,), (6,).
 
-    s = r sin β, c = r cos β with r = |n×u||j×u| > 0, so atan2(s, c) = β exactly.
+    With m = n×u and k = j×u, β is defined by sin β ∝ u·(m×k) and cos β ∝ m·k. By the
+    vector identities (n×u)×(j×u) = −u ((n×u)·j) and (n×u)·(j×u) = n·j − (n·u)(j·u):
+    u·(m×k) = (n×j)·u and m·k = n·j − (n·u)(j·u). Multiplying both by |l|² > 0 gives
+    s = |l| (n×j)·l and c = (n·j)|l|² − (n·l)(j·l): polynomial in l except one sqrt.
     """
-    l = leg_vectors(table, pose)
-    u = l / jnp.linalg.norm(l, axis=-1, keepdims=True)
-    R = rotation_matrix(pose[3:])
-    n = table.base_axes
-    j = table.platform_axes @ R.T
-    m = jnp.cross(n, u)
-    k = jnp.cross(j, u)
-    s = jnp.sum(u * jnp.cross(m, k), axis=-1)
-    c = jnp.sum(m * k, axis=-1)
+    R = rotation_entries(pose[3:])
+    l = _legs(table, pose, R)
+    n = _columns(table.base_axes)
+    j = _rotate(R, _columns(table.platform_axes))
+    ll = _dot(l, l)
+    s = jnp.sqrt(ll) * _dot(_cross(n, j), l)
+    c = _dot(n, j) * ll - _dot(n, l) * _dot(j, l)
     return s, c
 
 
@@ -52,11 +92,13 @@ def rod_rotation(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6"]:
 
     Right-hand rule about the leg axis u_i (pointing base joint -> platform joint): positive is
     counter-clockwise seen from the platform end looking down the leg toward the base.
-    Computed as one atan2 of the increment, so it never wraps at ±180° and has finite
-    gradients everywhere except where a joint axis is parallel to its leg.
+    Computed as one atan2 of the increment β(q) − β(home), so it never wraps at ±180° and has
+    finite gradients everywhere except where a joint axis is parallel to its leg.
     """
     s, c = _twist_sin_cos(table, pose)
     s0, c0 = _twist_sin_cos(table, HOME)
+    r0 = jnp.sqrt(s0 * s0 + c0 * c0)
+    s0, c0 = s0 / r0, c0 / r0
     return jnp.arctan2(s * c0 - c * s0, c * c0 + s * s0)
 
 

@@ -8,23 +8,33 @@ jax 0.10.2 in about one run in two). These kernels are ordinary fused element-wi
 no custom call; at n = 6 they are as fast.
 """
 
+import jax
 import jax.numpy as jnp
+import lineax as lx
 from jaxtyping import Array, Float
 
 
 def lu_small(A: Float[Array, "n n"]):
     """PA = LU with partial pivoting, unrolled over the n columns. Returns (LU, perm): the
-    unit-lower multipliers below the diagonal, U on and above it; `perm` the row order."""
+    unit-lower multipliers below the diagonal, U on and above it; `perm` the row order.
+
+    Row swaps are written as one-hot arithmetic rather than indexed updates, so under `vmap`
+    the whole factorisation stays element-wise (no gathers or scatters)."""
     n = A.shape[0]
     rows = jnp.arange(n)
-    perm = rows
+    perm = rows.astype(A.dtype)
     M = jnp.asarray(A)
     for k in range(n):
         p = jnp.argmax(jnp.where(rows >= k, jnp.abs(M[:, k]), -1.0))
-        M = M.at[k].set(M[p]).at[p].set(M[k])
-        perm = perm.at[k].set(perm[p]).at[p].set(perm[k])
+        at_p = (rows == p).astype(M.dtype)
+        at_k = (rows == k).astype(M.dtype)
+        row_p = at_p @ M
+        d = row_p - M[k]
+        M = M + (at_k - at_p)[:, None] * d[None, :]
+        perm_p = at_p @ perm
+        perm = perm + (at_k - at_p) * (perm_p - perm[k])
         f = jnp.where(rows > k, M[:, k] / M[k, k], 0.0)
-        M = M - f[:, None] * jnp.where(jnp.arange(n) > k, M[k], 0.0)[None, :]
+        M = M - f[:, None] * jnp.where(rows > k, M[k], 0.0)[None, :]
         M = M.at[:, k].set(jnp.where(rows > k, f, M[:, k]))
     return M, perm
 
@@ -33,7 +43,8 @@ def lu_solve_small(LU, perm, B: Float[Array, "n k"]) -> Float[Array, "n k"]:
     """Solve A X = B from `lu_small(A)`; linear in B (so it transposes for reverse mode)."""
     n = LU.shape[0]
     rows = jnp.arange(n)
-    X = B[perm]
+    P = (perm[:, None] == rows[None, :]).astype(B.dtype)
+    X = jnp.sum(P[:, :, None] * B[None, :, :], axis=1)
     for k in range(n):
         X = X - jnp.where(rows > k, LU[:, k], 0.0)[:, None] * X[k][None, :]
     for k in range(n - 1, -1, -1):
@@ -73,3 +84,54 @@ def cond_small(J: Float[Array, "n n"]) -> Float[Array, ""]:
     lmax = largest_eigval_small(S)
     lmin = 1.0 / largest_eigval_small(inv_small(S))
     return jnp.sqrt(lmax / lmin)
+
+
+class SmallLU(lx.AbstractLinearSolver):
+    """A lineax linear solver for small square systems by `lu_small` / `lu_solve_small`.
+
+    Drop-in for `lx.LU()` in optimistix solvers whose unknown is one flat array (the 6-D
+    forward-kinematics Newton): the same partial-pivoting elimination, but as fused element-wise
+    code, with no LAPACK custom call. Batched under `vmap` it is faster at n = 6, and it is safe
+    where LAPACK calls deadlock (several simulated CPU devices, see the module docstring).
+    A singular matrix gives non-finite values, which optimistix reports as a failed solve.
+    """
+
+    def init(self, operator, options):
+        del options
+        if operator.in_size() != operator.out_size():
+            raise ValueError("SmallLU needs a square operator")
+        if not (
+            isinstance(operator.in_structure(), jax.ShapeDtypeStruct)
+            and len(operator.in_structure().shape) == 1
+        ):
+            raise ValueError("SmallLU needs an operator on a flat (n,) array")
+        return lu_small(operator.as_matrix()), False
+
+    def compute(self, state, vector, options):
+        del options
+        (LU, perm), transposed = state
+        if transposed:
+            x = solve_small(_from_lu(LU, perm).T, vector[:, None])[:, 0]
+        else:
+            x = lu_solve_small(LU, perm, vector[:, None])[:, 0]
+        return x, lx.RESULTS.successful, {}
+
+    def transpose(self, state, options):
+        (LU, perm), transposed = state
+        return ((LU, perm), not transposed), {}
+
+    def conj(self, state, options):
+        return state, {}
+
+    def assume_full_rank(self):
+        return True
+
+
+def _from_lu(LU, perm):
+    """A from its `lu_small` factors (for the rarely used transposed solve)."""
+    n = LU.shape[0]
+    L = jnp.tril(LU, -1) + jnp.eye(n, dtype=LU.dtype)
+    U = jnp.triu(LU)
+    PA = L @ U
+    P = (perm[:, None] == jnp.arange(n)[None, :]).astype(LU.dtype)
+    return P.T @ PA

@@ -8,6 +8,23 @@ from jaxtyping import Array, Float
 ARCSEC_PER_RAD = math.degrees(1.0) * 3600.0
 
 
+def rotation_entries(angles: Float[Array, "3"]) -> tuple[tuple[Array, Array, Array], ...]:
+    """The nine entries of `rotation_matrix` as a row-major tuple of scalar tuples.
+
+    Kept unstacked so that under `vmap` each entry is one elementwise expression fused into
+    its consumer (a stacked matrix becomes separate fusions that each recompute the sines).
+    """
+    phi, theta, psi = angles[0], angles[1], angles[2]
+    cf, sf = jnp.cos(phi), jnp.sin(phi)
+    ct, st = jnp.cos(theta), jnp.sin(theta)
+    cp, sp = jnp.cos(psi), jnp.sin(psi)
+    return (
+        (cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf),
+        (sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf),
+        (-st, ct * sf, ct * cf),
+    )
+
+
 def rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
     """R = Rz(yaw) @ Ry(pitch) @ Rx(roll), platform frame -> base frame.
 
@@ -17,17 +34,7 @@ def rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
     coordinates `R @ a_p`. This is the paper's Z-Y-X order written correctly (its eq. (2) has
     three misprinted elements; see `paper_rotation_matrix`).
     """
-    phi, theta, psi = angles[0], angles[1], angles[2]
-    cf, sf = jnp.cos(phi), jnp.sin(phi)
-    ct, st = jnp.cos(theta), jnp.sin(theta)
-    cp, sp = jnp.cos(psi), jnp.sin(psi)
-    return jnp.array(
-        [
-            [cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf],
-            [sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf],
-            [-st, ct * sf, ct * cf],
-        ]
-    )
+    return jnp.array(rotation_entries(angles))
 
 
 def paper_rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
