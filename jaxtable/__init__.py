@@ -21,7 +21,9 @@ from ._api import (  # noqa: E402
     rod_rotation,
     spiral_extension,
 )
+from ._batch import batch_mesh, run_batch  # noqa: E402
 from ._calibrate import Calibration, calibrate, fit, setup, validate  # noqa: E402
+from ._commandmap import CommandMap, command_map  # noqa: E402
 from ._context import Context  # noqa: E402
 from ._data import DataFileError, Measurements, load_measurements, save_measurements  # noqa: E402
 from ._design import symmetric_table  # noqa: E402
@@ -47,6 +49,7 @@ from ._io import load_model, load_table, reference_table, save_table, table_from
 from ._montecarlo import monte_carlo  # noqa: E402
 from ._poses import compare_with_random, evaluate_design, pose_jacobians, select_poses  # noqa: E402
 from ._posterior import PosteriorResult, corner_plot, plot_bands, posterior, predictive_bands  # noqa: E402
+from ._realtime import CommandFunction, command_function  # noqa: E402
 from ._rotation import euler_rate_matrix, paper_rotation_matrix, rotation_matrix  # noqa: E402
 from ._sensitivity import paper_error_jacobian, pose_sensitivity  # noqa: E402
 from ._simulate import perturb_table, plan_grid, plan_random, plan_swing, plan_x_line, simulate  # noqa: E402
@@ -60,6 +63,12 @@ from ._tolerance import (  # noqa: E402
 from ._workspace import Workspace  # noqa: E402
 
 __all__ = [
+    "CommandFunction",
+    "CommandMap",
+    "batch_mesh",
+    "command_function",
+    "command_map",
+    "run_batch",
     "DataFileError",
     "Measurements",
     "load_measurements",

@@ -4,8 +4,6 @@ Every function takes poses of shape (..., 6) = (x, y, z, roll, pitch, yaw) in mm
 (any leading dims, float64) and returns per-leg arrays of shape (..., 6).
 """
 
-from functools import partial
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -13,8 +11,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import _kinematics as kin
-from ._batch import flatten_batch, map_batch
-from ._context import Context, batch_context
+from ._batch import flatten_batch, run_batch
+from ._context import Context, split_context
 from ._effects import Effects, resolve_effects
 from ._errors import (
     KinematicsError,
@@ -29,17 +27,12 @@ from ._model import inverse_extension
 from ._table import Table
 
 
-@eqx.filter_jit
-def _map_one(fn, table, flat, chunk):
-    return map_batch(partial(fn, table), flat, chunk=chunk)
-
-
 def _per_pose(fn, table: Table, poses, chunk: int):
     require_x64()
     check_finite_poses(poses)
     flat, batch_shape = flatten_batch(poses, 1)
-    out = _map_one(fn, table, flat, chunk)
-    return jax.tree.map(lambda o: o.reshape(batch_shape + o.shape[1:]), out)
+    out = run_batch(fn, table, flat, chunk=chunk)
+    return jax.tree.map(lambda o: jnp.asarray(o).reshape(batch_shape + o.shape[1:]), out)
 
 
 def leg_lengths(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:
@@ -127,9 +120,14 @@ def _check_stroke(table: Table, lengths, batch_shape, name: str) -> None:
         )
 
 
-@eqx.filter_jit
-def _inverse_flat(table, effects, flat, ctx, chunk):
-    return map_batch(partial(inverse_extension, table, effects), flat, ctx, chunk=chunk)
+def _command_row(shared, row):
+    """Commanded joint-to-joint lengths L0 + s (6,) for one pose (the row function of
+    `actuator_command`): shared = (table, effects, context or None), row = (pose, context
+    or None)."""
+    table, effects, ctx = shared
+    pose, row_ctx = row
+    s, _ = inverse_extension(table, effects, pose, row_ctx if ctx is None else ctx)
+    return table.zero_lengths + s
 
 
 def actuator_command(
@@ -140,7 +138,7 @@ def actuator_command(
     effects: Effects | None = None,
     context: Context | None = None,
     check: bool = True,
-    chunk: int = 1 << 16,
+    chunk: int = 1 << 18,
 ) -> Float[Array, "... 6"]:
     """Joint-to-joint leg lengths the controller should command for `poses`, mm, (..., 6).
 
@@ -158,8 +156,10 @@ def actuator_command(
     check_finite_poses(poses)
     eff = resolve_effects(table, effects) if compensate else {}
     flat, batch_shape = flatten_batch(poses, 1)
-    s, _ = _inverse_flat(table, eff, flat, batch_context(flat.shape[0], context), chunk)
-    cmd = table.zero_lengths + s
+    shared_ctx, row_ctx = split_context(flat.shape[0], context)
+    cmd = jnp.asarray(
+        run_batch(_command_row, (table, eff, shared_ctx), (flat, row_ctx), chunk=chunk)
+    )
     if check:
         _check_stroke(table, cmd, batch_shape, "commanded leg length(s)")
     return cmd.reshape(batch_shape + (6,))
@@ -189,14 +189,17 @@ _REASONS = {
 }
 
 
-@eqx.filter_jit
-def _forward_flat(table, effects, s, guess, ctx, options, chunk):
-    def one(s_i, g_i, c_i):
-        return forward_one(table, effects, s_i, g_i, options, c_i)
-
-    pose, code, steps, resid = map_batch(one, s, guess, ctx, chunk=chunk)
+def _forward_row(shared, row):
+    """(pose, code, steps, residual) for one command (the row function of `forward_solve`):
+    shared = (table, effects, options, guess or None, context or None), row = (s, guess or
+    None, context or None)."""
+    table, effects, options, guess, ctx = shared
+    s, row_guess, row_ctx = row
+    guess = row_guess if guess is None else guess
+    ctx = row_ctx if ctx is None else ctx
+    pose, code, steps, resid = forward_one(table, effects, s, guess, options, ctx)
     code = jnp.where((code == 0) & ~(resid <= options.accept_residual), 100, code)
-    below = pose[:, 2] + table.home_height <= 0
+    below = pose[2] + table.home_height <= 0
     code = jnp.where((code == 0) & below, 101, code)
     return pose, code, steps, resid
 
@@ -221,13 +224,23 @@ def forward_solve(
     eff = resolve_effects(table, effects)
     flat, batch_shape = flatten_batch(commands, 1)
     s = flat - (table if nominal is None else nominal).zero_lengths
+    n = flat.shape[0]
     if guess is None:
-        g = jnp.zeros_like(flat)
+        guess = jnp.zeros(6)
     else:
         check_finite_poses(guess, "guess")
-        g = jnp.broadcast_to(jnp.asarray(guess, dtype=jnp.float64), flat.shape[:1] + (6,))
-    ctx = batch_context(flat.shape[0], context)
-    pose, code, steps, resid = _forward_flat(table, eff, s, g, ctx, options, chunk)
+        guess = jnp.asarray(guess, dtype=jnp.float64)
+        if guess.ndim > 1:
+            guess = jnp.broadcast_to(guess.reshape(-1, 6), (n, 6))
+    shared_guess, row_guess = (guess, None) if guess.ndim == 1 else (None, guess)
+    shared_ctx, row_ctx = split_context(n, context)
+    out = run_batch(
+        _forward_row,
+        (table, eff, options, shared_guess, shared_ctx),
+        (s, row_guess, row_ctx),
+        chunk=chunk,
+    )
+    pose, code, steps, resid = (jnp.asarray(x) for x in out)
     return ForwardResult(
         pose.reshape(batch_shape + (6,)),
         code.reshape(batch_shape),

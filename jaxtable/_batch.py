@@ -1,18 +1,45 @@
-"""Batching: apply a one-pose function over any leading dims, in bounded-memory chunks."""
+"""Batching: apply a one-row function over a batch in bounded-memory chunks, spread over every
+device of this process and over every process of a `jax.distributed` job.
 
+`run_batch(fn, shared, batched, chunk=...)` is the one entry point the batch APIs use
+(commands, forward kinematics, sensitivities, error maps, Monte Carlo, the simulator):
+
+- inside `jit` / `grad` (traced input): `jax.vmap`, or `jax.lax.map` over chunks beyond
+  `chunk` rows, so peak memory is one chunk's;
+- concrete input: a loop over chunks of `chunk` rows (the next chunk is dispatched before the
+  previous one is copied out), each chunk one call of a compiled `vmap`. The compiled program
+  sees one chunk shape (the last chunk is padded by repeating its last row), and a chunk of
+  the loop runs multi-threaded, which `lax.map` (an in-place update per step) does not;
+- several local devices (GPUs, or `--xla_force_host_platform_device_count`): each chunk is
+  placed with `NamedSharding` over a 1-D mesh of all local devices (`AxisType.Auto`), and the
+  jitted vmap is partitioned by XLA, one slice of rows per device;
+- several processes (`jax.distributed.initialize`): every process calls the API with the same
+  full input, computes its own contiguous slice of rows on its local devices, and the slices
+  are gathered with `process_allgather`, so every process returns the full result.
+
+No `shard_map` (optimistix/lineax do not support it in this stack) and no LAPACK call in the
+batched kernels (simulated CPU devices can deadlock in them; see `_linalg`).
+"""
+
+import math
+from functools import partial
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 DEFAULT_CHUNK = 1 << 16
 
 
 def map_batch(fn, *xs, chunk: int = DEFAULT_CHUNK):
-    """`jax.vmap(fn)(*xs)` over the leading axis of every x, in chunks of `chunk` rows.
+    """`jax.vmap(fn)(*xs)` over the leading axis of every x (pytrees allowed), in chunks.
 
     Up to `chunk` rows: one vmap. Beyond: `jax.lax.map` with `batch_size=chunk`, so peak
-    memory is that of one chunk whatever the batch size.
+    memory is that of one chunk whatever the batch size. For use inside traced code; from
+    Python, `run_batch` is faster and shards.
     """
-    n = xs[0].shape[0]
+    n = jax.tree.leaves(xs)[0].shape[0]
     if n <= chunk:
         return jax.vmap(fn)(*xs)
     return jax.lax.map(lambda a: fn(*a), xs, batch_size=chunk)
@@ -23,3 +50,121 @@ def flatten_batch(x, tail: int):
     x = jnp.asarray(x, dtype=jnp.float64)
     batch_shape = x.shape[: x.ndim - tail]
     return x.reshape((-1,) + x.shape[x.ndim - tail :]), batch_shape
+
+
+@eqx.filter_jit
+def _vmapped(fn, shared, batched):
+    return jax.vmap(partial(fn, shared))(batched)
+
+
+@eqx.filter_jit
+def _chunked(fn, shared, batched, chunk):
+    return map_batch(partial(fn, shared), batched, chunk=chunk)
+
+
+def _is_traced(tree) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
+
+
+def batch_mesh():
+    """1-D mesh ("batch",) over this process's devices, or None with a single device."""
+    devices = jax.local_devices()
+    if len(devices) == 1:
+        return None
+    return jax.sharding.Mesh(
+        np.array(devices), ("batch",), axis_types=(jax.sharding.AxisType.Auto,)
+    )
+
+
+def _pad_rows(tree, n_to: int):
+    """Pad every leaf (numpy) along axis 0 to n_to rows by repeating its last row."""
+
+    def pad(x):
+        n = x.shape[0]
+        if n == n_to:
+            return x
+        return np.concatenate([x, np.repeat(x[-1:], n_to - n, axis=0)])
+
+    return jax.tree.map(pad, tree)
+
+
+def _slice_rows(tree, start: int, stop: int):
+    return jax.tree.map(lambda x: x[start:stop], tree)
+
+
+def _run_local(fn, shared, batched, n: int, chunk: int, progress=None):
+    """All rows of `batched` (numpy leaves, n rows) on this process's devices, in chunks."""
+    mesh = batch_mesh()
+    n_dev = 1 if mesh is None else mesh.size
+    size = min(chunk, n)
+    size = n_dev * math.ceil(size / n_dev)
+    if mesh is not None:
+        rows = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+        everywhere = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+        shared = jax.tree.map(
+            lambda x: jax.device_put(x, everywhere) if eqx.is_array(x) else x, shared
+        )
+
+    def launch(start):
+        part = _pad_rows(_slice_rows(batched, start, start + size), size)
+        if mesh is not None:
+            part = jax.device_put(part, rows)
+        return _vmapped(fn, shared, part)
+
+    starts = range(0, n, size)
+    if len(starts) == 1 and n == size and mesh is None:
+        return launch(0)  # one chunk on one device: keep the device arrays
+    out = None
+    pending = None
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, unit="row", desc=progress if isinstance(progress, str) else None)
+    for start in list(starts) + [None]:
+        nxt = None if start is None else (start, launch(start))
+        if pending is not None:
+            p_start, p_out = pending
+            m = min(size, n - p_start)
+            leaves, treedef = jax.tree.flatten(p_out)
+            if out is None:
+                out = [np.empty((n,) + x.shape[1:], dtype=x.dtype) for x in leaves]
+            for o, x in zip(out, leaves):
+                o[p_start : p_start + m] = np.asarray(x)[:m]
+            if bar is not None:
+                bar.update(m)
+        pending = nxt
+    if bar is not None:
+        bar.close()
+    return jax.tree.unflatten(treedef, out)
+
+
+def run_batch(fn, shared, batched, *, chunk: int = DEFAULT_CHUNK, progress=None):
+    """`jax.vmap(lambda row: fn(shared, row))(batched)`, chunked and spread over devices and
+    processes (see the module docstring).
+
+    `fn(shared, row)`: a module-level function for ONE row (a stable identity, so it compiles
+    once per shape); `shared`: a pytree used by every row (tables, effects, options; non-array
+    leaves are static); `batched`: a pytree whose array leaves all have the same leading
+    number of rows. Returns the pytree of outputs with that leading axis: jax arrays when the
+    batch was one chunk on one device or the input was traced, else numpy arrays.
+    `progress`: a description string (or True) for a progress bar over the rows.
+    """
+    if _is_traced((shared, batched)):
+        return _chunked(fn, shared, batched, chunk)
+    batched = jax.tree.map(np.asarray, batched)
+    n = jax.tree.leaves(batched)[0].shape[0]
+    if n == 0:
+        return _vmapped(fn, shared, batched)
+    n_proc = jax.process_count()
+    if n_proc == 1:
+        return _run_local(fn, shared, batched, n, chunk, progress)
+    from jax.experimental import multihost_utils
+
+    per = math.ceil(n / n_proc)
+    start = jax.process_index() * per
+    mine = _pad_rows(_slice_rows(batched, min(start, n - 1), min(start + per, n)), per)
+    local = _run_local(fn, shared, mine, per, chunk, progress)
+    local = jax.tree.map(np.asarray, local)
+    gathered = multihost_utils.process_allgather(local, tiled=True)
+    return jax.tree.map(lambda x: np.asarray(x)[:n], gathered)

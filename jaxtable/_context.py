@@ -63,3 +63,15 @@ def directions(cmd_lengths: np.ndarray) -> np.ndarray:
     rows = np.arange(len(d))[:, None]
     last = np.maximum.accumulate(np.where(d != 0, rows, 0), axis=0)
     return np.take_along_axis(d, last, axis=0)
+
+
+def split_context(n: int, context: "Context | None" = None):
+    """(shared, per_row) for a batch of n stops: the context itself when no leaf has a batch
+    axis (shared by every row, never broadcast to n copies), else `batch_context(n, context)`.
+    Exactly one of the two is None."""
+    c = Context() if context is None else context
+    if jnp.ndim(c.direction) == 1 and all(
+        jnp.ndim(getattr(c, k)) == 0 for k in ("temperature", "payload", "session")
+    ):
+        return c, None
+    return None, batch_context(n, c)

@@ -12,14 +12,12 @@ Per pose (one-pose function `budget_one`, batched with vmap):
 
 import math
 from dataclasses import dataclass
-from functools import partial
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from ._batch import map_batch
+from ._batch import run_batch
 from ._errors import POSE_COLUMNS, require_x64
 from ._forward import angle_scale
 from ._kinematics import joint_bend, leg_lengths, spiral_extension
@@ -58,9 +56,9 @@ def budget_one(table: Table, sigmas: tuple, pose):
     return std, bias, cond, reach
 
 
-@eqx.filter_jit
-def _budget_chunk(table, sigmas, poses):
-    return map_batch(partial(budget_one, table, sigmas), poses, chunk=poses.shape[0])
+def _budget_row(shared, pose):
+    table, sigmas = shared
+    return budget_one(table, sigmas, pose)
 
 
 @dataclass(frozen=True)
@@ -225,10 +223,8 @@ def error_map(
     ):
         p = grid.poses(start, start + chunk)
         std, bias, cond, reach = (
-            np.asarray(x) for x in _budget_chunk(table, sigmas, jnp.asarray(_pad(p, chunk)))
+            np.asarray(x) for x in run_batch(_budget_row, (table, sigmas), p, chunk=chunk)
         )
-        m = len(p)
-        std, bias, cond, reach = std[:m], bias[:m], cond[:m], reach[:m]
         if keep:
             out.append(
                 (std.astype(np.float32), bias.astype(np.float32), cond.astype(np.float32), reach)
@@ -269,10 +265,3 @@ def error_map(
     shp = grid.shape
     emap = ErrorMap(grid, *(c.reshape(shp + c.shape[1:]) for c in cat))
     return emap, summary
-
-
-def _pad(p: np.ndarray, size: int) -> np.ndarray:
-    """Pad a short last chunk with home poses so every chunk has one compiled shape."""
-    if len(p) == size:
-        return p
-    return np.concatenate([p, np.zeros((size - len(p), 6))])

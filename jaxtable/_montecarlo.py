@@ -1,14 +1,14 @@
 """Monte Carlo propagation of a tolerance budget through the exact forward kinematics:
 hardware realisations × poses, each solved by Newton with its effects inside."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._api import actuator_command
+from ._batch import run_batch
 from ._errors import check_finite_poses, require_x64
 from ._forward import ForwardOptions, forward_one
-from ._model import inverse_extension
 from ._rotation import rotation_matrix
 from ._table import Table
 from ._tolerance import Tolerances, budget_effects, sample_hardware
@@ -32,19 +32,17 @@ def _pose_error(q, pose):
     return jnp.concatenate([q[:3] - pose[:3], rotation_error_vector(q[3:], pose[3:])])
 
 
-@eqx.filter_jit
-def _mc(table, tables, effects, poses, options):
-    nominal = budget_effects(table)
-    s = jax.vmap(lambda p: inverse_extension(table, nominal, p)[0])(poses)
+def _mc_sample(shared, sample):
+    """Pose errors (P, 6) and codes (P,) of one hardware realisation `sample` = (table,
+    effects) at the commanded poses; shared = (extensions s (P, 6), poses (P, 6), options)."""
+    s, poses, options = shared
+    t, e = sample
 
-    def one_sample(t, e):
-        def one_pose(si, p):
-            q, code, _, _ = forward_one(t, e, si, p, options)
-            return _pose_error(q, p), code
+    def one_pose(si, p):
+        q, code, _, _ = forward_one(t, e, si, p, options)
+        return _pose_error(q, p), code
 
-        return jax.vmap(one_pose)(s, poses)
-
-    return jax.vmap(one_sample)(tables, effects)
+    return jax.vmap(one_pose)(s, poses)
 
 
 def monte_carlo(
@@ -72,7 +70,10 @@ def monte_carlo(
     check_finite_poses(poses)
     poses = jnp.asarray(poses, dtype=jnp.float64).reshape(-1, 6)
     tables, effects = sample_hardware(table, tolerances, n_samples, jax.random.PRNGKey(seed))
-    err, code = _mc(table, tables, effects, poses, options)
+    s = actuator_command(table, poses, effects=budget_effects(table), check=False)
+    s = s - table.zero_lengths
+    chunk = max(1, (1 << 16) // poses.shape[0])
+    err, code = run_batch(_mc_sample, (s, poses, options), (tables, effects), chunk=chunk)
     code = np.asarray(code)
     err = np.asarray(err)
     if allow_failures:

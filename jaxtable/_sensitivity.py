@@ -11,18 +11,17 @@ finite differences). Poses are (..., 6); parameters are named leaves of the tabl
 effect ("base_joints", "zero_lengths", "lead", "spiral.lead", "lead_scale.eps", ...).
 """
 
-from functools import partial
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._batch import flatten_batch, map_batch
+from ._batch import flatten_batch, run_batch
 from ._effects import Effects, resolve_effects
 from ._errors import check_finite_poses, require_x64
 from ._kinematics import leg_vectors
+from ._linalg import solve_small
 from ._model import inverse_extension, length_residual
 from ._rotation import euler_rate_matrix, rotation_matrix
 from ._table import Table
@@ -152,16 +151,15 @@ def per_leg_jacobians_one(table, effects, pose, wrt):
 def sensitivity_one(table, effects, pose, wrt, rotation_vector: bool):
     """d(actual pose)/dθ at one commanded pose, (6, P): −(∂r/∂q)⁻¹ ∂r/∂θ."""
     Jq, Jt = jacobians_one(table, effects, pose, wrt)
-    dq = -jnp.linalg.solve(Jq, Jt)
+    dq = -solve_small(Jq, Jt)  # plain jnp: no LAPACK call in batched kernels (see _linalg)
     if rotation_vector:
         dq = jnp.concatenate([dq[:3], euler_rate_matrix(pose[3:]) @ dq[3:]])
     return dq
 
 
-@eqx.filter_jit
-def _sens_flat(table, effects, flat, wrt, rotation_vector, chunk):
-    fn = partial(sensitivity_one, table, effects, wrt=wrt, rotation_vector=rotation_vector)
-    return map_batch(fn, flat, chunk=chunk)
+def _sensitivity_row(shared, pose):
+    table, effects, wrt, rotation_vector = shared
+    return sensitivity_one(table, effects, pose, wrt, rotation_vector)
 
 
 def pose_sensitivity(
@@ -188,9 +186,8 @@ def pose_sensitivity(
     check_parameter_names(model, wrt)
     names = parameter_names(model, wrt)
     flat, batch_shape = flatten_batch(poses, 1)
-    J = _sens_flat(
-        table, None if effects is None else dict(effects), flat, wrt, rotation_vector, chunk
-    )
+    shared = (table, None if effects is None else dict(effects), wrt, rotation_vector)
+    J = jnp.asarray(run_batch(_sensitivity_row, shared, flat, chunk=chunk))
     return J.reshape(batch_shape + J.shape[1:]), names
 
 

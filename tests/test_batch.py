@@ -1,0 +1,76 @@
+"""Chunked batch runner, the real-time single-pose command and streamed command maps."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import random_poses
+
+import jaxtable as jt
+from jaxtable._batch import run_batch
+
+
+def _row(shared, row):
+    scale, offset = shared
+    x, y = row
+    return scale * jnp.sin(x) + offset, jnp.sum(y * y)
+
+
+def test_run_batch_chunks_pad_and_trace_give_the_plain_vmap():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(23, 3))
+    y = rng.normal(size=(23, 2))
+    shared = (jnp.asarray(2.0), jnp.asarray([1.0, 2.0, 3.0]))
+    want = jax.vmap(lambda r: _row(shared, r))((x, y))
+    for chunk in (1, 5, 23, 64):  # 23 = 4 chunks of 5 + a padded one
+        got = run_batch(_row, shared, (x, y), chunk=chunk)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-15)
+    # traced input (inside jit): lax.map over chunks, same numbers
+    got = jax.jit(lambda a, b: run_batch(_row, shared, (a, b), chunk=5))(x, y)
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=1e-15)
+
+
+def test_actuator_command_chunked_equals_one_chunk(table):
+    poses = random_poses(1000, seed=3)
+    a = np.asarray(jt.actuator_command(table, poses))
+    b = np.asarray(jt.actuator_command(table, poses, chunk=96))
+    np.testing.assert_array_equal(a, b)
+    # and against the definition: rigid length minus the spiral extension
+    want = np.asarray(jt.leg_lengths(table, poses) - jt.spiral_extension(table, poses))
+    np.testing.assert_allclose(a, want, atol=1e-9)
+
+
+def test_command_function_matches_batch_command_and_checks_input(table):
+    poses = random_poses(50, seed=4)
+    f = jt.command_function(table)
+    got = np.stack([f(q) for q in poses])
+    np.testing.assert_allclose(got, np.asarray(jt.actuator_command(table, poses)), atol=1e-12)
+    rigid = jt.command_function(table, compensate=False)
+    np.testing.assert_allclose(rigid(poses[0]), np.asarray(jt.leg_lengths(table, poses[0])))
+    assert isinstance(got[0], np.ndarray) and got[0].dtype == np.float64
+    with pytest.raises(jt.KinematicsError, match="non-finite"):
+        f([0, 0, np.nan, 0, 0, 0])
+    with pytest.raises(ValueError, match=r"shape \(6,\)"):
+        f(np.zeros(5))
+    with pytest.raises(jt.KinematicsError, match="outside the stroke"):
+        f([0, 0, 900.0, 0, 0, 0])
+
+
+def test_command_map_summary_matches_direct_evaluation(table):
+    grid = jt.workspace_slice(("x", "roll"), n=(9, 7))
+    poses = grid.poses()
+    cmd = np.asarray(jt.actuator_command(table, poses))
+    spiral = np.abs(np.asarray(jt.spiral_extension(table, poses)))
+    reach = np.asarray(jt.reachable(table, poses))
+    assert reach.any()
+    m, s = jt.command_map(table, grid, keep=True, chunk=10)  # 7 chunks, last one short
+    assert s["poses"] == 63 and s["reachable"] == int(reach.sum())
+    np.testing.assert_allclose(s["command_min_mm"], cmd[reach].min(0), atol=1e-9)
+    np.testing.assert_allclose(s["command_max_mm"], cmd[reach].max(0), atol=1e-9)
+    np.testing.assert_allclose(s["spiral_max_mm"], spiral[reach].max(0), atol=1e-12)
+    k = np.argmax(np.where(reach, spiral.max(1), -1))
+    np.testing.assert_allclose(s["spiral_worst_pose"], poses[k])
+    assert m.command.shape == (9, 7, 6)
+    np.testing.assert_allclose(m.command.reshape(-1, 6), cmd, rtol=1e-6)
+    np.testing.assert_array_equal(m.reachable.reshape(-1), reach)
