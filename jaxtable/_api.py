@@ -138,7 +138,7 @@ def actuator_command(
     effects: Effects | None = None,
     context: Context | None = None,
     check: bool = True,
-    chunk: int = 1 << 18,
+    chunk: int = 1 << 20,
 ) -> Float[Array, "... 6"]:
     """Joint-to-joint leg lengths the controller should command for `poses`, mm, (..., 6).
 

@@ -23,38 +23,50 @@ class CommandFunction:
     (numpy float64), compiled for one table, effect set and context. Make it with
     `command_function`.
 
-    Checks per call (about 2 µs): the pose has shape (6,) and is finite, and with
-    `check=True` every command lies inside the stroke; otherwise KinematicsError (a
-    controller should hold its last command on error).
+    Checks per call: the pose has shape (6,) and is finite, and with `check=True` every
+    command lies inside the stroke (evaluated inside the compiled call, returned as one flag);
+    otherwise KinematicsError (a controller should hold its last command on error). The
+    returned array is a fresh (6,) view of the call's output.
     """
 
     def __init__(self, table: Table, effects: Effects, context: Context, check: bool):
         require_x64()
+        lo, hi = table.stroke[0], table.stroke[1]
 
         def one(pose):
             s, _ = inverse_extension(table, effects, pose, context)
-            return table.zero_lengths + s
+            cmd = table.zero_lengths + s
+            # one flag computed with the command, so a call costs a single scalar test:
+            # 1 = non-finite pose, 2 = a command outside the stroke
+            bad = jnp.where(
+                jnp.all(jnp.isfinite(pose)),
+                jnp.where(check & jnp.any((cmd < lo) | (cmd > hi)), 2.0, 0.0),
+                1.0,
+            )
+            return jnp.concatenate([cmd, bad[None]])
 
         spec = jax.ShapeDtypeStruct((6,), jnp.float64)
         self._compiled = jax.jit(one).lower(spec).compile()
         self._lo, self._hi = (float(v) for v in np.asarray(table.stroke))
-        self._check = check
 
     def __call__(self, pose) -> np.ndarray:
         q = np.asarray(pose, dtype=np.float64)
         if q.shape != (6,):
             raise ValueError(f"pose must have shape (6,), got {q.shape}")
-        if not np.isfinite(q).all():
+        out = np.asarray(self._compiled(q))
+        if out[6] != 0.0:
+            self._raise(q, out)
+        return out[:6]
+
+    def _raise(self, q, out):
+        if out[6] == 1.0:
             raise KinematicsError(f"non-finite pose {q.tolist()}")
-        cmd = np.asarray(self._compiled(q))
-        if self._check and ((cmd < self._lo).any() or (cmd > self._hi).any()):
-            bad = np.flatnonzero((cmd < self._lo) | (cmd > self._hi))
-            raise KinematicsError(
-                "commanded leg length(s) outside the stroke "
-                f"[{self._lo}, {self._hi}] mm at pose {q.tolist()}: "
-                + ", ".join(f"leg {k + 1} {cmd[k]:.3f} mm" for k in bad)
-            )
-        return cmd
+        cmd = out[:6]
+        bad = np.flatnonzero((cmd < self._lo) | (cmd > self._hi))
+        raise KinematicsError(
+            f"commanded leg length(s) outside the stroke [{self._lo}, {self._hi}] mm at pose "
+            f"{q.tolist()}: " + ", ".join(f"leg {k + 1} {cmd[k]:.3f} mm" for k in bad)
+        )
 
 
 def command_function(

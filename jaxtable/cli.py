@@ -298,6 +298,16 @@ def _diagnose(args) -> int:
     return 0
 
 
+def _bench(args) -> int:
+    from ._bench import markdown, run_benchmark, write
+
+    r = run_benchmark(_table(args.table), quick=args.quick, log=lambda m: print(m, file=sys.stderr))
+    print(markdown(r))
+    paths = write(r, args.out)
+    print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxtable", description=__doc__)
     sub = p.add_subparsers(dest="verb", required=True)
@@ -428,6 +438,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sp.add_argument("--folds", type=int, default=5, help="k of the k-fold held-out score (5)")
     sp.set_defaults(func=_diagnose)
+
+    sp = sub.add_parser(
+        "bench",
+        help="benchmarks with numpy/scipy baselines in the same run: inverse and forward "
+        "kinematics, sensitivities, calibration, emcee, single-pose latency, a 1e8-pose map",
+    )
+    common(sp, "out/bench")
+    sp.add_argument("--quick", action="store_true", help="tiny sizes: a smoke run (~1 min)")
+    sp.set_defaults(func=_bench)
     return p
 
 
