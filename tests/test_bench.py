@@ -1,0 +1,54 @@
+"""The benchmark's baselines compute the same thing as jaxtable, and its machine-limit count
+matches the formulation (no timing is asserted anywhere)."""
+
+import json
+
+import numpy as np
+import pytest
+from conftest import random_poses
+
+import jaxtable as jt
+from jaxtable._bench import kernel_op_counts, machine_limit, numpy_command, scipy_forward
+
+
+def test_numpy_baseline_equals_the_compensated_command(table):
+    poses = random_poses(200, seed=5)
+    np.testing.assert_allclose(
+        numpy_command(table, poses), np.asarray(jt.actuator_command(table, poses)), atol=1e-9
+    )
+
+
+def test_scipy_baseline_recovers_the_pose(table):
+    poses = random_poses(3, seed=6)
+    cmd = np.asarray(jt.actuator_command(table, poses))
+    np.testing.assert_allclose(scipy_forward(table, cmd), poses, atol=1e-8)
+
+
+def test_kernel_op_counts_match_the_formulation(table):
+    c = kernel_op_counts(table)
+    # per pose: sin and cos of 3 angles; per leg one sqrt (|l|) and one atan2 (the twist)
+    assert (c["sin"], c["cos"], c["sqrt"], c["atan2"]) == (3, 3, 6, 6)
+    assert 100 < c["arith"] < 2000
+    rates = {k: 1e9 for k in c}
+    assert machine_limit(c, rates) == pytest.approx(1e9 / sum(c.values()))
+
+
+@pytest.mark.slow
+def test_bench_cli_quick_writes_every_figure(tmp_path):
+    from jaxtable.cli import main
+
+    assert main(["bench", "--quick", "--out", str(tmp_path)]) == 0
+    r = json.loads((tmp_path / "benchmark.json").read_text())
+    assert {
+        "ik",
+        "ik_limit",
+        "fk",
+        "fk_scipy",
+        "sensitivity",
+        "calibration",
+        "latency",
+        "map",
+    } <= set(r)
+    assert all("numpy_per_s" in x for x in r["ik"])
+    assert all(x["converged"] == 1.0 for x in r["fk"])
+    assert (tmp_path / "benchmark.md").read_text().count("|") > 50
