@@ -6,10 +6,11 @@ device of this process and over every process of a `jax.distributed` job.
 
 - inside `jit` / `grad` (traced input): `jax.vmap`, or `jax.lax.map` over chunks beyond
   `chunk` rows, so peak memory is one chunk's;
-- concrete input: a loop over chunks of `chunk` rows (the next chunk is dispatched before the
-  previous one is copied out), each chunk one call of a compiled `vmap`. The compiled program
-  sees one chunk shape (the last chunk is padded by repeating its last row), and a chunk of
-  the loop runs multi-threaded, which `lax.map` (an in-place update per step) does not;
+- concrete input: a loop over equal chunks of at most about `chunk` rows (the next chunk is
+  dispatched before the previous one is copied out), each chunk one call of a compiled
+  `vmap`. The chunk size is rounded up to a multiple of chunk/16 (the last chunk is padded by
+  repeating its last row), so batches of different sizes share a few compiled shapes; a chunk
+  runs multi-threaded, which `lax.map` (an in-place update per step) does not;
 - several local devices (GPUs, or `--xla_force_host_platform_device_count`): each chunk is
   placed with `NamedSharding` over a 1-D mesh of all local devices (`AxisType.Auto`), and the
   jitted vmap is partitioned by XLA, one slice of rows per device;
@@ -96,8 +97,11 @@ def _run_local(fn, shared, batched, n: int, chunk: int, progress=None):
     """All rows of `batched` (numpy leaves, n rows) on this process's devices, in chunks."""
     mesh = batch_mesh()
     n_dev = 1 if mesh is None else mesh.size
-    size = min(chunk, n)
-    size = n_dev * math.ceil(size / n_dev)
+    # equal chunks (little padding), their size rounded up to a multiple of chunk/16 so that
+    # batches of different sizes share a few compiled shapes
+    n_chunks = math.ceil(n / chunk)
+    quantum = n_dev * max(1, math.ceil(chunk / 16 / n_dev)) if n_chunks > 1 else n_dev
+    size = quantum * math.ceil(math.ceil(n / n_chunks) / quantum)
     if mesh is not None:
         rows = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
         everywhere = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())

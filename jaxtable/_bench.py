@@ -342,6 +342,14 @@ def run_benchmark(table: Table, quick: bool = False, log=print) -> dict:
         t0 = clock()
         f(p)
         lat[i] = clock() - t0
+    trivial = jax.jit(lambda q: q + 1.0)  # JAX's dispatch floor: a call that does nothing
+    for p in qs[:200]:
+        np.asarray(trivial(p))
+    lat_floor = np.empty(min(len(qs), 5000))
+    for i, p in enumerate(qs[: len(lat_floor)]):
+        t0 = clock()
+        np.asarray(trivial(p))
+        lat_floor[i] = clock() - t0
     lat_np = np.empty(min(len(qs), 5000))
     for i, p in enumerate(qs[: len(lat_np)]):
         t0 = clock()
@@ -353,6 +361,8 @@ def run_benchmark(table: Table, quick: bool = False, log=print) -> dict:
         "p99_us": float(np.percentile(lat, 99) * 1e6),
         "max_us": float(lat.max() * 1e6),
         "cycle_budget_us": CYCLE_US,
+        "dispatch_floor_median_us": float(np.median(lat_floor) * 1e6),
+        "dispatch_floor_p99_us": float(np.percentile(lat_floor, 99) * 1e6),
         "numpy_median_us": float(np.median(lat_np) * 1e6),
         "numpy_p99_us": float(np.percentile(lat_np, 99) * 1e6),
     }
@@ -493,7 +503,9 @@ def markdown(r: dict) -> str:
         f"{ca['walker_steps_per_s']:.3g} walker-steps/s |",
         f"| single-pose compensated command (`command_function`), {la['calls']} calls | "
         f"median {la['median_us']:.1f} µs, p99 {la['p99_us']:.1f} µs, max "
-        f"{la['max_us']:.0f} µs; numpy one pose: median {la['numpy_median_us']:.1f} µs, p99 "
+        f"{la['max_us']:.0f} µs; JAX dispatch floor (a jitted no-op, numpy in/out): median "
+        f"{la['dispatch_floor_median_us']:.1f} µs, p99 {la['dispatch_floor_p99_us']:.1f} µs; "
+        f"numpy one pose: median {la['numpy_median_us']:.1f} µs, p99 "
         f"{la['numpy_p99_us']:.1f} µs |",
         f"| streamed command map, {m['poses']:.0e} poses (x, y, z, yaw grid) | "
         f"{m['seconds']:.1f} s = {m['poses'] / m['seconds']:.3g} poses/s, peak resident "
