@@ -4,14 +4,13 @@ memory (10⁸ poses: see the benchmark)."""
 
 from dataclasses import dataclass
 
-import jax.numpy as jnp
 import numpy as np
 
 from ._batch import run_batch
 from ._effects import Effects, resolve_effects
 from ._errormap import Grid, PoseList, workspace_slice
 from ._errors import require_x64
-from ._kinematics import joint_bend, leg_lengths, spiral_extension
+from ._kinematics import spiral_extension, within_limits
 from ._model import inverse_extension
 from ._table import Table
 
@@ -19,12 +18,7 @@ from ._table import Table
 def _command_map_row(shared, pose):
     table, effects = shared
     s, _ = inverse_extension(table, effects, pose)
-    L = leg_lengths(table, pose)
-    bend = jnp.max(joint_bend(table, pose))
-    reach = jnp.all((L >= table.stroke[0]) & (L <= table.stroke[1])) & (
-        bend <= table.joint_angle_limit
-    )
-    return table.zero_lengths + s, spiral_extension(table, pose), reach
+    return table.zero_lengths + s, spiral_extension(table, pose), within_limits(table, pose)
 
 
 @dataclass(frozen=True)

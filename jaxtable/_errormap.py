@@ -20,7 +20,7 @@ from tqdm.auto import tqdm
 from ._batch import run_batch
 from ._errors import POSE_COLUMNS, require_x64
 from ._forward import angle_scale
-from ._kinematics import joint_bend, leg_lengths, spiral_extension
+from ._kinematics import spiral_extension, within_limits
 from ._linalg import cond_small, inv_small
 from ._rotation import ARCSEC_PER_RAD, euler_rate_matrix
 from ._sensitivity import per_leg_jacobians_one
@@ -48,11 +48,7 @@ def budget_one(table: Table, sigmas: tuple, pose):
     bias = Jinv @ spiral_extension(table, pose)  # not compensating = an L0 error of Δl2
     scale = jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / angle_scale(table))])
     cond = cond_small(Jq * scale)
-    L = leg_lengths(table, pose)
-    bend = jnp.max(joint_bend(table, pose))
-    reach = jnp.all((L >= table.stroke[0]) & (L <= table.stroke[1])) & (
-        bend <= table.joint_angle_limit
-    )
+    reach = within_limits(table, pose)
     return std, bias, cond, reach
 
 

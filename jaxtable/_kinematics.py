@@ -156,3 +156,12 @@ def joint_bend(table: Table, pose: Float[Array, "6"]) -> Float[Array, "2 6"]:
         return jnp.arctan2(jnp.linalg.norm(jnp.cross(a, b), axis=-1), jnp.sum(a * b, axis=-1))
 
     return jnp.stack([angle(u, u0), angle(up, u0)])
+
+
+def within_limits(table: Table, pose: Float[Array, "6"]) -> Array:
+    """True when every leg length |l_i| is inside the stroke and every U-joint bend is within
+    the table's joint angle limit (bool scalar)."""
+    L = leg_lengths(table, pose)
+    bend = jnp.max(joint_bend(table, pose))
+    in_stroke = jnp.all((L >= table.stroke[0]) & (L <= table.stroke[1]))
+    return in_stroke & (bend <= table.joint_angle_limit)

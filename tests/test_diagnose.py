@@ -158,7 +158,7 @@ def _null_selections(seeds):
 
 
 def test_null_data_select_nothing():
-    sel = _null_selections(range(100, 106))
+    sel = _null_selections(range(100, 103))
     assert sum(bool(s) for s in sel) <= 1, sel
 
 
@@ -168,7 +168,7 @@ def test_null_data_select_nothing_40_seeds():
     assert sum(not s for s in sel) >= 38, sel  # >= 95 %
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0])
 def test_effect_outside_the_library_is_unexplained(seed):
     nominal, data, _ = case("extension_squared", seed)
     diag = diagnose(data, nominal, log=_quiet)
@@ -177,8 +177,8 @@ def test_effect_outside_the_library_is_unexplained(seed):
 
 
 @pytest.mark.slow
-def test_effect_outside_the_library_five_seeds():
-    for seed in range(2, 7):
+def test_effect_outside_the_library_six_seeds():
+    for seed in range(1, 7):
         nominal, data, _ = case("extension_squared", seed)
         diag = diagnose(data, nominal, log=_quiet)
         assert diag.unexplained and diag.selected == [], (seed, diag.selected)
