@@ -57,6 +57,19 @@ def _timed(fn, reps: int):
     return first, float(np.median(ts))
 
 
+def _latencies(fn, poses: np.ndarray, warmup: int = 200) -> np.ndarray:
+    """Seconds of each call fn(pose), one pose at a time, after `warmup` untimed calls."""
+    for p in poses[:warmup]:
+        fn(p)
+    out = np.empty(len(poses))
+    clock = time.perf_counter
+    for i, p in enumerate(poses):
+        t0 = clock()
+        fn(p)
+        out[i] = clock() - t0
+    return out
+
+
 def _ready(x):
     return jax.block_until_ready(x)
 
@@ -334,27 +347,10 @@ def run_benchmark(table: Table, quick: bool = False, log=print) -> dict:
     # -- single-pose command latency
     f = command_function(table)
     qs = _poses(2000 if quick else 20000, seed=4)
-    for p in qs[:200]:
-        f(p)
-    lat = np.empty(len(qs))
-    clock = time.perf_counter
-    for i, p in enumerate(qs):
-        t0 = clock()
-        f(p)
-        lat[i] = clock() - t0
+    lat = _latencies(f, qs)
     trivial = jax.jit(lambda q: q + 1.0)  # JAX's dispatch floor: a call that does nothing
-    for p in qs[:200]:
-        np.asarray(trivial(p))
-    lat_floor = np.empty(min(len(qs), 5000))
-    for i, p in enumerate(qs[: len(lat_floor)]):
-        t0 = clock()
-        np.asarray(trivial(p))
-        lat_floor[i] = clock() - t0
-    lat_np = np.empty(min(len(qs), 5000))
-    for i, p in enumerate(qs[: len(lat_np)]):
-        t0 = clock()
-        numpy_command(table, p[None])
-        lat_np[i] = clock() - t0
+    lat_floor = _latencies(lambda p: np.asarray(trivial(p)), qs[:5000])
+    lat_np = _latencies(lambda p: numpy_command(table, p[None]), qs[:5000])
     r["latency"] = {
         "calls": len(qs),
         "median_us": float(np.median(lat) * 1e6),
