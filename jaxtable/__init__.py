@@ -2,12 +2,34 @@
 
 Importing jaxtable switches JAX to float64 (`jax_enable_x64`): micrometres on metre-scale
 legs need it. Lengths are in mm, angles in radians (degrees only in files, CLI and tables).
+
+The package is laid out by capability (see the README's "Layout"): a small flat core (table,
+rotation, kinematics, effects, the one model function, forward solve, batched API), and
+private sub-packages `_analysis` (tolerances, sensitivities, error and command maps, Monte
+Carlo, workspaces, design), `_calibration` (measurements, instruments, simulation, fits, pose
+selection, posterior), `_discovery` (diagnose) and `_reports` (Markdown and figure writers).
+Everything public is re-exported here.
 """
+
+from importlib.metadata import PackageNotFoundError, version
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from . import reports  # noqa: E402  (public report writers: jaxtable.reports)
+from ._analysis.commandmap import CommandMap, command_map  # noqa: E402
+from ._analysis.design import symmetric_table  # noqa: E402
+from ._analysis.errormap import ErrorMap, error_map  # noqa: E402
+from ._analysis.montecarlo import monte_carlo  # noqa: E402
+from ._analysis.sensitivities import paper_error_jacobian, pose_sensitivity  # noqa: E402
+from ._analysis.tolerances import (  # noqa: E402
+    ToleranceFileError,
+    Tolerances,
+    load_tolerances,
+    save_tolerances,
+)
+from ._analysis.workspaces import Grid, PoseList, Workspace, workspace_slice  # noqa: E402
 from ._api import (  # noqa: E402
     ForwardResult,
     actuator_command,
@@ -17,17 +39,46 @@ from ._api import (  # noqa: E402
     joint_bend,
     leg_lengths,
     paper_rod_rotation,
+    pose_error,
     reachable,
     rod_rotation,
     spiral_extension,
 )
 from ._batch import batch_mesh, run_batch  # noqa: E402
-from ._calibrate import Calibration, calibrate, fit, setup, validate  # noqa: E402
-from ._commandmap import CommandMap, command_map  # noqa: E402
+from ._calibration.fit import Calibration, calibrate, fit, setup  # noqa: E402
+from ._calibration.instruments import interferometer, point_tracker, tracker6  # noqa: E402
+from ._calibration.measurements import (  # noqa: E402
+    DataFileError,
+    Measurements,
+    load_measurements,
+    save_measurements,
+)
+from ._calibration.model_file import (  # noqa: E402
+    FittedModel,
+    InstrumentFrames,
+    fitted_model,
+    load_fitted_model,
+    save_fitted_model,
+)
+from ._calibration.poses import (  # noqa: E402
+    align_pose_errors,
+    compare_with_random,
+    evaluate_design,
+    pose_jacobians,
+    select_poses,
+)
+from ._calibration.posterior import PosteriorResult, posterior, predictive_bands  # noqa: E402
+from ._calibration.simulate import (  # noqa: E402
+    perturb_table,
+    plan_grid,
+    plan_random,
+    plan_swing,
+    plan_x_line,
+    simulate,
+)
+from ._calibration.validate import Validation, validate  # noqa: E402
 from ._context import Context  # noqa: E402
-from ._data import DataFileError, Measurements, load_measurements, save_measurements  # noqa: E402
-from ._design import symmetric_table  # noqa: E402
-from ._diagnose import Diagnosis, diagnose, heldout_rms  # noqa: E402
+from ._discovery.diagnose import Diagnosis, diagnose, heldout_rms  # noqa: E402
 from ._effects import (  # noqa: E402
     EFFECTS,
     AbstractEffect,
@@ -41,114 +92,131 @@ from ._effects import (  # noqa: E402
     default_effects,
     leg_forces,
 )
-from ._errormap import ErrorMap, Grid, PoseList, error_map, workspace_slice  # noqa: E402
 from ._errors import KinematicsError, TableFileError  # noqa: E402
-from ._forward import ForwardOptions  # noqa: E402
-from ._instrument import interferometer, point_tracker, tracker6  # noqa: E402
+from ._forward import RESULTS, ForwardOptions, platform_radius  # noqa: E402
 from ._io import load_model, load_table, reference_table, save_table, table_from_dict  # noqa: E402
-from ._montecarlo import monte_carlo  # noqa: E402
-from ._poses import compare_with_random, evaluate_design, pose_jacobians, select_poses  # noqa: E402
-from ._posterior import PosteriorResult, corner_plot, plot_bands, posterior, predictive_bands  # noqa: E402
+from ._params import GEOMETRY  # noqa: E402
 from ._realtime import CommandFunction, command_function  # noqa: E402
-from ._rotation import euler_rate_matrix, paper_rotation_matrix, rotation_matrix  # noqa: E402
-from ._sensitivity import paper_error_jacobian, pose_sensitivity  # noqa: E402
-from ._simulate import perturb_table, plan_grid, plan_random, plan_swing, plan_x_line, simulate  # noqa: E402
-from ._table import Table, check_table, replace  # noqa: E402
-from ._tolerance import (  # noqa: E402
-    ToleranceFileError,
-    Tolerances,
-    load_tolerances,
-    save_tolerances,
+from ._reports.posterior import corner_plot, plot_bands  # noqa: E402
+from ._rotation import (  # noqa: E402
+    euler_from_matrix,
+    euler_rate_matrix,
+    paper_rotation_matrix,
+    rotation_log,
+    rotation_matrix,
 )
-from ._workspace import Workspace  # noqa: E402
+from ._table import Table, check_table, replace  # noqa: E402
 
 __all__ = [
-    "CommandFunction",
-    "CommandMap",
-    "batch_mesh",
-    "command_function",
-    "command_map",
-    "run_batch",
-    "DataFileError",
-    "Measurements",
-    "load_measurements",
-    "save_measurements",
-    "Calibration",
-    "calibrate",
-    "fit",
-    "setup",
-    "validate",
-    "perturb_table",
-    "plan_grid",
-    "plan_random",
-    "plan_swing",
-    "plan_x_line",
-    "simulate",
-    "interferometer",
-    "point_tracker",
-    "tracker6",
-    "PosteriorResult",
-    "corner_plot",
-    "plot_bands",
-    "posterior",
-    "predictive_bands",
-    "compare_with_random",
-    "evaluate_design",
-    "pose_jacobians",
-    "select_poses",
-    "Diagnosis",
-    "diagnose",
-    "heldout_rms",
+    # core
     "AbstractEffect",
     "Backlash",
+    "CommandFunction",
     "Compliance",
     "Context",
     "EFFECTS",
+    "ForwardOptions",
+    "ForwardResult",
+    "GEOMETRY",
+    "KinematicsError",
+    "LeadScale",
     "PeriodicLead",
+    "RESULTS",
     "Rehoming",
+    "Spiral",
+    "Table",
+    "TableFileError",
     "Thermal",
+    "actuator_command",
+    "batch_mesh",
+    "check_reachable",
+    "check_table",
+    "command_function",
+    "default_effects",
+    "euler_from_matrix",
+    "euler_rate_matrix",
+    "forward",
+    "forward_solve",
+    "joint_bend",
     "leg_forces",
+    "leg_lengths",
+    "load_model",
+    "load_table",
+    "paper_rod_rotation",
+    "paper_rotation_matrix",
+    "platform_radius",
+    "pose_error",
+    "reachable",
+    "reference_table",
+    "replace",
+    "rod_rotation",
+    "rotation_log",
+    "rotation_matrix",
+    "run_batch",
+    "save_table",
+    "spiral_extension",
+    "table_from_dict",
+    # analysis
+    "CommandMap",
     "ErrorMap",
     "Grid",
-    "LeadScale",
     "PoseList",
     "ToleranceFileError",
     "Tolerances",
+    "Workspace",
+    "command_map",
     "error_map",
     "load_tolerances",
     "monte_carlo",
     "paper_error_jacobian",
     "pose_sensitivity",
     "save_tolerances",
-    "workspace_slice",
-    "ForwardOptions",
-    "ForwardResult",
-    "KinematicsError",
-    "Spiral",
-    "Table",
-    "TableFileError",
-    "Workspace",
-    "actuator_command",
-    "check_reachable",
-    "check_table",
-    "default_effects",
-    "euler_rate_matrix",
-    "forward",
-    "forward_solve",
-    "joint_bend",
-    "leg_lengths",
-    "load_model",
-    "load_table",
-    "paper_rod_rotation",
-    "paper_rotation_matrix",
-    "reachable",
-    "reference_table",
-    "replace",
-    "rod_rotation",
-    "rotation_matrix",
-    "save_table",
-    "spiral_extension",
     "symmetric_table",
-    "table_from_dict",
+    "workspace_slice",
+    # calibration
+    "Calibration",
+    "DataFileError",
+    "Measurements",
+    "PosteriorResult",
+    "align_pose_errors",
+    "calibrate",
+    "compare_with_random",
+    "corner_plot",
+    "evaluate_design",
+    "fit",
+    "interferometer",
+    "load_measurements",
+    "perturb_table",
+    "plot_bands",
+    "plan_grid",
+    "plan_random",
+    "plan_swing",
+    "plan_x_line",
+    "point_tracker",
+    "pose_jacobians",
+    "posterior",
+    "predictive_bands",
+    "save_measurements",
+    "select_poses",
+    "setup",
+    "simulate",
+    "tracker6",
+    "validate",
+    "FittedModel",
+    "InstrumentFrames",
+    "Validation",
+    "fitted_model",
+    "load_fitted_model",
+    "save_fitted_model",
+    # discovery
+    "Diagnosis",
+    "diagnose",
+    "heldout_rms",
+    # report writers
+    "reports",
 ]
-__version__ = "0.1.0"
+
+try:
+    __version__ = version("jaxtable")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "0+unknown"

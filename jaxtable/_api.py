@@ -4,13 +4,16 @@ Every function takes poses of shape (..., 6) = (x, y, z, roll, pitch, yaw) in mm
 (any leading dims, float64) and returns per-leg arrays of shape (..., 6).
 """
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from . import _kinematics as kin
+from . import _rotation as rot
 from ._batch import flatten_batch, run_batch
 from ._context import Context, split_context
 from ._effects import Effects, resolve_effects
@@ -20,14 +23,15 @@ from ._errors import (
     check_finite_poses,
     describe_rows,
     is_concrete,
+    renamed_argument,
     require_x64,
 )
-from ._forward import ForwardOptions, forward_one
+from ._forward import RESULTS, ForwardOptions, forward_one
 from ._model import inverse_extension
 from ._table import Table
 
 
-def _per_pose(fn, table: Table, poses, chunk: int):
+def per_pose(fn, table: Table, poses, chunk: int):
     require_x64()
     check_finite_poses(poses)
     flat, batch_shape = flatten_batch(poses, 1)
@@ -35,31 +39,45 @@ def _per_pose(fn, table: Table, poses, chunk: int):
     return jax.tree.map(lambda o: jnp.asarray(o).reshape(batch_shape + o.shape[1:]), out)
 
 
-def leg_lengths(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:
+def leg_lengths(table: Table, poses, *, chunk: int = 1 << 16) -> Float[ArrayLike, "... 6"]:
     """Joint-to-joint leg lengths |t + R a_i^p − b_i| of the rigid geometry, mm. (..., 6)."""
-    return _per_pose(kin.leg_lengths, table, poses, chunk)
+    return per_pose(kin.leg_lengths, table, poses, chunk)
 
 
-def rod_rotation(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:
+def rod_rotation(table: Table, poses, *, chunk: int = 1 << 16) -> Float[ArrayLike, "... 6"]:
     """Rod-versus-barrel rotation Δα_i since home, rad, (..., 6). Right-hand rule about the
     leg axis (base -> platform): positive = counter-clockwise seen from the platform end."""
-    return _per_pose(kin.rod_rotation, table, poses, chunk)
+    return per_pose(kin.rod_rotation, table, poses, chunk)
 
 
-def spiral_extension(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:
+def spiral_extension(table: Table, poses, *, chunk: int = 1 << 16) -> Float[ArrayLike, "... 6"]:
     """Passive spiral extension hand·lead·Δα_i/(2π), mm, (..., 6)."""
-    return _per_pose(kin.spiral_extension, table, poses, chunk)
+    return per_pose(kin.spiral_extension, table, poses, chunk)
 
 
-def paper_rod_rotation(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 6"]:
+def paper_rod_rotation(table: Table, poses, *, chunk: int = 1 << 16) -> Float[ArrayLike, "... 6"]:
     """The paper's literal eqs. (15)-(19), rad, (..., 6); opposite sense to `rod_rotation`.
     Kept only for comparison (see `jaxtable._kinematics.paper_rod_rotation`)."""
-    return _per_pose(kin.paper_rod_rotation, table, poses, chunk)
+    return per_pose(kin.paper_rod_rotation, table, poses, chunk)
 
 
-def joint_bend(table: Table, poses, *, chunk: int = 1 << 16) -> Float[Array, "... 2 6"]:
+def joint_bend(table: Table, poses, *, chunk: int = 1 << 16) -> Float[ArrayLike, "... 2 6"]:
     """U-joint bend from the home leg direction, rad, (..., 2, 6): [base, platform]."""
-    return _per_pose(kin.joint_bend, table, poses, chunk)
+    return per_pose(kin.joint_bend, table, poses, chunk)
+
+
+def pose_error(actual, commanded) -> Float[ArrayLike, "... 6"]:
+    """Error of poses `actual` against `commanded` (both (..., 6), mm / rad, broadcast):
+    translation difference (mm) and the rotation vector of R(actual) R(commanded)ᵀ (rad,
+    base frame), (..., 6). jaxtable's one pose-error measure (see `_rotation.pose_error`)."""
+    require_x64()
+    a = jnp.asarray(actual, dtype=jnp.float64)
+    c = jnp.asarray(commanded, dtype=jnp.float64)
+    shape = jnp.broadcast_shapes(a.shape, c.shape)
+    if shape[-1:] != (6,):
+        raise ValueError(f"poses must have shape (..., 6); got {a.shape} and {c.shape}")
+    a, c = (jnp.broadcast_to(x, shape).reshape(-1, 6) for x in (a, c))
+    return jax.vmap(rot.pose_error)(a, c).reshape(shape)
 
 
 def _reach_one(table, pose):
@@ -70,18 +88,17 @@ def _reach_one(table, pose):
 
 def reachable(table: Table, poses, *, chunk: int = 1 << 16):
     """Boolean (...,): every leg inside the stroke and every U-joint bend within the limit."""
-    L, bend = _per_pose(_reach_one, table, poses, chunk)
-    lo, hi = table.stroke[0], table.stroke[1]
-    return jnp.all((L >= lo) & (L <= hi) & (bend <= table.joint_angle_limit), axis=-1)
+    L, bend = per_pose(_reach_one, table, poses, chunk)
+    return jnp.all(kin.in_stroke(table, L) & (bend <= table.joint_angle_limit), axis=-1)
 
 
 def check_reachable(table: Table, poses, *, chunk: int = 1 << 16) -> None:
     """Raise KinematicsError naming every pose (first few) outside the stroke or joint limits."""
-    L, bend = _per_pose(_reach_one, table, poses, chunk)
+    L, bend = per_pose(_reach_one, table, poses, chunk)
     L, bend = np.asarray(L).reshape(-1, 6), np.asarray(bend).reshape(-1, 6)
     lo, hi = (float(v) for v in np.asarray(table.stroke))
     limit = float(table.joint_angle_limit)
-    out_stroke = (L < lo) | (L > hi)
+    out_stroke = ~np.asarray(kin.in_stroke(table, L))
     out_bend = bend > limit
     bad = out_stroke.any(1) | out_bend.any(1)
     if bad.any():
@@ -106,7 +123,7 @@ def _check_stroke(table: Table, lengths, batch_shape, name: str) -> None:
         return
     L = np.asarray(lengths).reshape(-1, 6)
     lo, hi = (float(v) for v in np.asarray(table.stroke))
-    out = (L < lo) | (L > hi)
+    out = ~np.asarray(kin.in_stroke(table, L))
     if out.any():
 
         def what(i):
@@ -133,17 +150,18 @@ def _command_row(shared, row):
 def actuator_command(
     table: Table,
     poses,
-    compensate: bool = True,
+    compensated: bool = True,
     *,
+    compensate: bool | None = None,
     effects: Effects | None = None,
     context: Context | None = None,
     check: bool = True,
     chunk: int = 1 << 20,
-) -> Float[Array, "... 6"]:
+) -> Float[ArrayLike, "... 6"]:
     """Joint-to-joint leg lengths the controller should command for `poses`, mm, (..., 6).
 
-    `compensate=False`: the rigid inverse kinematics |l_i(q)| (what an uncompensated
-    controller commands). `compensate=True`: the command L0_i + s_i for which the hardware,
+    `compensated=False`: the rigid inverse kinematics |l_i(q)| (what an uncompensated
+    controller commands). `compensated=True`: the command L0_i + s_i for which the hardware,
     with its effects (default: the table's own, i.e. the passive spiral term), reaches the
     pose: the paper's Δl* = Δl − Δl2 for the spiral term. The actuator extension is
     s_i = command_i − L0_i. `context`: the stops' context (a `Context` for all, or one with a
@@ -154,7 +172,10 @@ def actuator_command(
     """
     require_x64()
     check_finite_poses(poses)
-    eff = resolve_effects(table, effects) if compensate else {}
+    compensated = renamed_argument(
+        compensated, compensate, "compensate", "compensated", "actuator_command"
+    )
+    eff = resolve_effects(table, effects) if compensated else {}
     flat, batch_shape = flatten_batch(poses, 1)
     shared_ctx, row_ctx = split_context(flat.shape[0], context)
     cmd = jnp.asarray(
@@ -166,42 +187,47 @@ def actuator_command(
 
 
 class ForwardResult(eqx.Module):
-    """Per-command outcome of `forward_solve`. Shapes: pose (..., 6); others (...)."""
+    """Per-command outcome of `forward_solve`. Shapes: pose (..., 6); result, steps,
+    residual (...). `result` is a batched `RESULTS` item: compare it with
+    `RESULTS.successful` (elementwise), or read `ok`; `reason(i)` is the message of the
+    i-th command (flat index)."""
 
-    pose: Float[Array, "... 6"]
-    code: Array
+    pose: Float[ArrayLike, "... 6"]
+    result: RESULTS
     steps: Array
-    residual: Float[Array, "..."]
+    residual: Float[ArrayLike, "..."]
 
     @property
     def ok(self):
-        return self.code == 0
+        """Boolean (...): the solve converged to a physical pose within tolerance."""
+        return self.result == RESULTS.successful
 
+    def reason(self, i: int) -> str:
+        """The `RESULTS` message of command `i` (index into the flattened batch)."""
+        return RESULTS[jax.tree.map(lambda v: jnp.reshape(v, -1)[i], self.result)]
 
-_REASONS = {
-    1: "Newton hit its step limit",
-    2: "singular Jacobian (a singular configuration, or the solve left the workspace)",
-    7: "Newton hit its step limit",
-    8: "Newton diverged",
-    9: "non-finite values in the solve",
-    100: "converged to a pose with residual above tolerance",
-    101: "converged to a non-physical assembly (platform at or below the base)",
-}
+    @property
+    def code(self):
+        """Deprecated: integer result codes (0 = converged). Compare `result` with
+        `jaxtable.RESULTS` members instead; `code` will be removed in the next release."""
+        warnings.warn(
+            "ForwardResult.code is deprecated; compare ForwardResult.result with "
+            "jaxtable.RESULTS members (or use .ok)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return jax.tree.leaves(self.result)[0]
 
 
 def _forward_row(shared, row):
-    """(pose, code, steps, residual) for one command (the row function of `forward_solve`):
-    shared = (table, effects, options, guess or None, context or None), row = (s, guess or
-    None, context or None)."""
+    """(pose, result, steps, residual) for one command (the row function of
+    `forward_solve`): shared = (table, effects, options, guess or None, context or None),
+    row = (s, guess or None, context or None)."""
     table, effects, options, guess, ctx = shared
     s, row_guess, row_ctx = row
     guess = row_guess if guess is None else guess
     ctx = row_ctx if ctx is None else ctx
-    pose, code, steps, resid = forward_one(table, effects, s, guess, options, ctx)
-    code = jnp.where((code == 0) & ~(resid <= options.accept_residual), 100, code)
-    below = pose[2] + table.home_height <= 0
-    code = jnp.where((code == 0) & below, 101, code)
-    return pose, code, steps, resid
+    return forward_one(table, effects, s, guess, options, ctx)
 
 
 def forward_solve(
@@ -217,7 +243,7 @@ def forward_solve(
 ) -> ForwardResult:
     """Forward kinematics without raising: the pose and a status for every command.
 
-    Use `forward` unless you want to handle failures pose by pose (code 0 = converged).
+    Use `forward` unless you want to handle failures pose by pose (`ok`, `result`).
     """
     require_x64()
     check_finite_lengths(commands)
@@ -240,12 +266,12 @@ def forward_solve(
         (s, row_guess, row_ctx),
         chunk=chunk,
     )
-    pose, code, steps, resid = (jnp.asarray(x) for x in out)
+    pose, result, steps, resid = out
     return ForwardResult(
-        pose.reshape(batch_shape + (6,)),
-        code.reshape(batch_shape),
-        steps.reshape(batch_shape),
-        resid.reshape(batch_shape),
+        jnp.asarray(pose).reshape(batch_shape + (6,)),
+        jax.tree.map(lambda v: jnp.reshape(v, batch_shape), result),
+        jnp.asarray(steps).reshape(batch_shape),
+        jnp.asarray(resid).reshape(batch_shape),
     )
 
 
@@ -259,7 +285,7 @@ def forward(
     context: Context | None = None,
     options: ForwardOptions = ForwardOptions(),
     chunk: int = 1 << 16,
-) -> Float[Array, "... 6"]:
+) -> Float[ArrayLike, "... 6"]:
     """Pose (..., 6) the table reaches for commanded joint-to-joint lengths (..., 6), mm.
 
     The actuator extension is s_i = command_i − L0_i, with L0 of the table the controller
@@ -290,22 +316,20 @@ def forward(
         chunk=chunk,
     )
     if is_concrete(res):
-        code = np.asarray(res.code).reshape(-1)
-        if np.any(code != 0):
+        bad = ~np.asarray(res.ok).reshape(-1)
+        if np.any(bad):
             resid = np.asarray(res.residual).reshape(-1)
             steps = np.asarray(res.steps).reshape(-1)
 
             def what(i):
-                c = int(code[i])
-                reason = _REASONS.get(c, f"optimistix result code {c}")
-                return f"{reason} (after {int(steps[i])} steps, residual {resid[i]:.3g} mm)"
+                return f"{res.reason(i)} (after {int(steps[i])} steps, residual {resid[i]:.3g} mm)"
 
             raise KinematicsError(
-                "forward kinematics failed:\n" + describe_rows(code != 0, flat_shape, what)
+                "forward kinematics failed:\n" + describe_rows(bad, flat_shape, what)
             )
         return res.pose
     return eqx.error_if(
         res.pose,
-        jnp.any(res.code != 0),
-        "forward kinematics failed for at least one command (call forward_solve for codes)",
+        jnp.any(~res.ok),
+        "forward kinematics failed for at least one command (call forward_solve for results)",
     )

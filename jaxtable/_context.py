@@ -3,7 +3,7 @@
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import ArrayLike, Float, Int
 
 REFERENCE_TEMPERATURE = 20.0  # °C
 
@@ -18,10 +18,10 @@ class Context(eqx.Module):
       (rehoming; 0 = the first).
     """
 
-    direction: Float[Array, "6"]
-    temperature: Float[Array, ""]
-    payload: Float[Array, ""]
-    session: Int[Array, ""]
+    direction: Float[ArrayLike, "6"]
+    temperature: Float[ArrayLike, ""]
+    payload: Float[ArrayLike, ""]
+    session: Int[ArrayLike, ""]
 
     def __init__(self, direction=1.0, temperature=REFERENCE_TEMPERATURE, payload=0.0, session=0):
         direction = jnp.asarray(direction, dtype=jnp.float64)

@@ -27,11 +27,11 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._context import REFERENCE_TEMPERATURE, Context
 from ._errors import is_concrete
-from ._kinematics import leg_vectors, rod_rotation
+from ._kinematics import leg_lines, rod_rotation
 from ._linalg import solve_small
 from ._rotation import rotation_matrix
 from ._table import Table
@@ -58,8 +58,8 @@ class AbstractEffect(eqx.Module):
     source: ClassVar[str] = ""
 
     def __call__(
-        self, table: Table, pose: Float[Array, "6"], s: Float[Array, "6"], ctx: Context
-    ) -> Float[Array, "6"]:
+        self, table: Table, pose: Float[ArrayLike, "6"], s: Float[ArrayLike, "6"], ctx: Context
+    ) -> Float[ArrayLike, "6"]:
         raise NotImplementedError
 
     @classmethod
@@ -75,7 +75,7 @@ class Spiral(AbstractEffect):
     0 = no passive term on that leg). `Spiral.from_table(table)` takes it from the hardware.
     """
 
-    lead: Float[Array, "6"]
+    lead: Float[ArrayLike, "6"]
     name: ClassVar[str] = "spiral"
     fields: ClassVar[tuple] = ("lead",)
     typical: ClassVar[dict] = {"lead": 12.7}
@@ -99,7 +99,7 @@ class Spiral(AbstractEffect):
 class LeadScale(AbstractEffect):
     """Lead (pitch) error proportional to travel: ε_i · s_i, mm. `eps` (6,) dimensionless."""
 
-    eps: Float[Array, "6"]
+    eps: Float[ArrayLike, "6"]
     name: ClassVar[str] = "lead_scale"
     fields: ClassVar[tuple] = ("eps",)
     depends_on_extension: ClassVar[bool] = True
@@ -121,7 +121,7 @@ class Backlash(AbstractEffect):
     """Lost motion: −(w_i/2)·d_i, mm; d_i = +1 if leg i last moved out, −1 if in.
     `w` (6,) mm."""
 
-    w: Float[Array, "6"]
+    w: Float[ArrayLike, "6"]
     name: ClassVar[str] = "backlash"
     fields: ClassVar[tuple] = ("w",)
     typical: ClassVar[dict] = {"w": 0.02}
@@ -142,8 +142,8 @@ class PeriodicLead(AbstractEffect):
     """Periodic lead error within one screw turn: a_i sin(2π s_i/p_i) + b_i cos(2π s_i/p_i),
     p_i = |lead_i| of the table (a leg with lead 0 has no term). `a`, `b` (6,) mm."""
 
-    a: Float[Array, "6"]
-    b: Float[Array, "6"]
+    a: Float[ArrayLike, "6"]
+    b: Float[ArrayLike, "6"]
     name: ClassVar[str] = "periodic_lead"
     fields: ClassVar[tuple] = ("a", "b")
     depends_on_extension: ClassVar[bool] = True
@@ -168,7 +168,7 @@ class Thermal(AbstractEffect):
     """Thermal growth of the legs: α_i (T − 20 °C) L0_i, mm. `alpha` (6,) 1/K; needs the
     `temperature` column."""
 
-    alpha: Float[Array, "6"]
+    alpha: Float[ArrayLike, "6"]
     name: ClassVar[str] = "thermal"
     fields: ClassVar[tuple] = ("alpha",)
     needs: ClassVar[tuple] = ("temperature",)
@@ -186,15 +186,13 @@ class Thermal(AbstractEffect):
         return self.alpha * (ctx.temperature - REFERENCE_TEMPERATURE) * table.zero_lengths
 
 
-def leg_forces(table: Table, pose: Float[Array, "6"], payload=0.0) -> Float[Array, "6"]:
+def leg_forces(table: Table, pose: Float[ArrayLike, "6"], payload=0.0) -> Float[ArrayLike, "6"]:
     """Axial leg forces F (6,), N, tension positive, holding the platform mass plus `payload`
     (kg, at the platform CoG) against gravity (−z) in static equilibrium:
     Σ F_i u_i = W and Σ F_i (R a_i × u_i) = R c × W, W = (0, 0, −m g)."""
-    l = leg_vectors(table, pose)
-    u = l / jnp.linalg.norm(l, axis=-1, keepdims=True)
+    u, moment = leg_lines(table, pose)
     R = rotation_matrix(pose[3:])
-    ra = table.platform_joints @ R.T
-    A = jnp.concatenate([u.T, jnp.cross(ra, u).T], axis=0)  # (6, 6), column i = leg i
+    A = jnp.concatenate([u.T, moment.T], axis=0)  # (6, 6), column i = leg i
     W = jnp.array([0.0, 0.0, -GRAVITY]) * (table.platform_mass + payload)
     rhs = jnp.concatenate([W, jnp.cross(R @ table.platform_cog, W)])
     return solve_small(A, rhs[:, None])[:, 0]
@@ -205,7 +203,7 @@ class Compliance(AbstractEffect):
     Stored as `flex` = 1/k (6,) mm/N so that rigid legs are flex = 0; `Compliance.from_k(k)`
     takes k in N/mm. Needs a platform mass (table file) and/or a `payload` column."""
 
-    flex: Float[Array, "6"]
+    flex: Float[ArrayLike, "6"]
     name: ClassVar[str] = "compliance"
     fields: ClassVar[tuple] = ("flex",)
     needs: ClassVar[tuple] = ("mass",)
@@ -235,7 +233,7 @@ class Rehoming(AbstractEffect):
     """Leg zeros that shift between recording sessions: c_i,session, mm (first session 0).
     `offsets` (S−1, 6): one row per later session. Needs the `session` column."""
 
-    offsets: Float[Array, "S 6"]
+    offsets: Float[ArrayLike, "S 6"]
     name: ClassVar[str] = "rehoming"
     fields: ClassVar[tuple] = ("offsets",)
     needs: ClassVar[tuple] = ("session",)

@@ -1,5 +1,7 @@
 """Error types raised at the public boundary, and the input checks that raise them."""
 
+import warnings
+
 import jax
 import numpy as np
 
@@ -87,3 +89,16 @@ def check_finite_lengths(lengths, name: str = "commands") -> None:
         raise KinematicsError(
             f"{name} has non-finite values:\n" + describe_rows(bad.any(1), v.shape[:-1], what)
         )
+
+
+def renamed_argument(new, old, old_name: str, new_name: str, where: str):
+    """Value of a keyword argument renamed from `old_name` to `new_name`: the old keyword
+    (not None) wins, with a DeprecationWarning; it is kept for one release."""
+    if old is None:
+        return new
+    warnings.warn(
+        f"{where}: the keyword `{old_name}` is deprecated, use `{new_name}`",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return old

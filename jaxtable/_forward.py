@@ -7,13 +7,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float, Int
+from jaxtyping import ArrayLike, Float, Int
 
 from ._context import Context
 from ._effects import Effects
 from ._linalg import SmallLU, solve_small
 from ._model import length_residual
 from ._table import Table
+
+
+class RESULTS(optx.RESULTS):  # pyright: ignore
+    """Outcome of a forward solve: optimistix's (and lineax's) results, plus jaxtable's own.
+    Compare with `==` (`result == RESULTS.successful`), look a message up with
+    `RESULTS[result]`; batched results compare elementwise."""
+
+    residual_above_tolerance = (
+        "converged to a pose whose leg-length residual is above the acceptance tolerance"
+    )
+    non_physical_assembly = "converged to a non-physical assembly (platform at or below the base)"
 
 
 class ForwardOptions(eqx.Module):
@@ -27,7 +38,7 @@ class ForwardOptions(eqx.Module):
     accept_residual: float = eqx.field(static=True, default=1e-8)
 
 
-def angle_scale(table: Table) -> Float[Array, ""]:
+def platform_radius(table: Table) -> Float[ArrayLike, ""]:
     """Platform radius (mean |a_i^p|), mm: converts rad to mm of arc for the Newton unknown."""
     return jnp.mean(jnp.linalg.norm(table.platform_joints, axis=-1))
 
@@ -35,7 +46,7 @@ def angle_scale(table: Table) -> Float[Array, ""]:
 def _newton(table, effects, s, guess, ctx, options):
     """optimistix Newton on the scaled pose; no derivative (see `forward_one`)."""
     table, effects, s, guess, ctx = jax.lax.stop_gradient((table, effects, s, guess, ctx))
-    scale = jnp.concatenate([jnp.ones(3), jnp.full(3, angle_scale(table))])
+    scale = jnp.concatenate([jnp.ones(3), jnp.full(3, platform_radius(table))])
 
     def fn(y, args):
         table, effects, s, ctx = args
@@ -46,12 +57,21 @@ def _newton(table, effects, s, guess, ctx, options):
     sol = optx.root_find(fn, solver, guess * scale, args, max_steps=options.max_steps, throw=False)
     y = sol.value
     resid = jnp.max(jnp.abs(fn(y, args)))
-    code = sol.result._value
-    ok = (code == 0) & jnp.all(jnp.isfinite(y))
-    # a failed solve returns the guess (flagged by its code), never NaN, so derivatives and
-    # optimisers that probe far-away parameters stay finite
+    finite = jnp.all(jnp.isfinite(y))
+    result = RESULTS.promote(sol.result)
+    result = RESULTS.where(finite, result, RESULTS.nonfinite)
+    ok = result == RESULTS.successful
+    result = RESULTS.where(
+        ok & ~(resid <= options.accept_residual), RESULTS.residual_above_tolerance, result
+    )
+    # a failed solve returns the guess (flagged by its result), never NaN, so derivatives
+    # and optimisers that probe far-away parameters stay finite
     q = jnp.where(ok, y / scale, guess)
-    return q, code, sol.stats["num_steps"], jnp.where(ok, resid, jnp.inf)
+    below = q[2] + table.home_height <= 0
+    result = RESULTS.where(
+        (result == RESULTS.successful) & below, RESULTS.non_physical_assembly, result
+    )
+    return q, result, sol.stats["num_steps"], jnp.where(ok, resid, jnp.inf)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(5,))
@@ -74,25 +94,27 @@ def _solve_jvp(options, primals, tangents):
     )
     Jq = jax.jacfwd(lambda qq: length_residual(table, effects, qq, s, ctx))(q)
     dq = -solve_small(Jq, dr[:, None])[:, 0]
-    zero_int = np.zeros((), dtype=jax.dtypes.float0)
-    return out, (dq, zero_int, zero_int, jnp.zeros_like(out[3]))
+    no_tangent = jax.tree.map(lambda x: np.zeros(np.shape(x), dtype=jax.dtypes.float0), out[1:3])
+    return out, (dq, *no_tangent, jnp.zeros_like(out[3]))
 
 
 def forward_one(
     table: Table,
     effects: Effects,
-    s: Float[Array, "6"],
-    guess: Float[Array, "6"],
+    s: Float[ArrayLike, "6"],
+    guess: Float[ArrayLike, "6"],
     options: ForwardOptions = ForwardOptions(),
     ctx: Context | None = None,
-) -> tuple[Float[Array, "6"], Int[Array, ""], Int[Array, ""], Float[Array, ""]]:
+) -> tuple[Float[ArrayLike, "6"], RESULTS, Int[ArrayLike, ""], Float[ArrayLike, ""]]:
     """Pose q (6,) at which the table settles for actuator extensions `s` (6,), mm.
 
-    Returns (pose, result code, Newton steps, max |residual| in mm). Result codes are
-    optimistix's: 0 = converged, 2 = singular Jacobian, 1/7 = step limit, 8 = diverged; a
-    failed solve returns `guess` as its pose (check the code). Differentiable in (table,
-    effects, s), forward and reverse mode, by implicit differentiation. `ctx`: the stop's
-    context (direction, temperature, payload, session; default: home).
+    Returns (pose, result, Newton steps, max |residual| in mm). `result` is a `RESULTS`
+    item: `RESULTS.successful`, optimistix's failures (singular Jacobian, step limit,
+    divergence, non-finite values) or jaxtable's (`residual_above_tolerance`,
+    `non_physical_assembly`); a failed solve returns `guess` as its pose (check `result`).
+    Differentiable in (table, effects, s), forward and reverse mode, by implicit
+    differentiation. `ctx`: the stop's context (direction, temperature, payload, session;
+    default: home).
     """
     ctx = Context() if ctx is None else ctx
     return _solve(table, effects, s, guess, ctx, options)

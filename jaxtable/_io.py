@@ -27,6 +27,9 @@ OPTIONAL = (
     "platform_cog",
     "zero_lengths",
 )
+# tables a fitted model file adds (jaxtable._calibration.model_file): effect parameters, the
+# controller's nominal zero lengths, the instrument's target and frames
+SECTIONS = ("effects", "controller", "instrument")
 
 
 def _array(doc: dict, key: str, shape: tuple[int, ...], where: str) -> np.ndarray:
@@ -71,7 +74,7 @@ def table_from_dict(doc: dict, where: str = "table") -> Table:
     missing = [k for k in REQUIRED if k not in doc]
     if missing:
         raise TableFileError(f"{where}: missing key(s) {', '.join(missing)}")
-    unknown = [k for k in doc if k not in REQUIRED + OPTIONAL + ("effects",)]
+    unknown = [k for k in doc if k not in REQUIRED + OPTIONAL + SECTIONS]
     if unknown:
         raise TableFileError(
             f"{where}: unknown key(s) {', '.join(unknown)}; allowed: "

@@ -6,10 +6,10 @@ wrap them with `jax.vmap`.
 """
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._rotation import rotation_entries, rotation_matrix
-from ._table import Table, home_leg_vectors
+from ._table import Table
 
 HOME = jnp.zeros(6)
 
@@ -21,7 +21,7 @@ HOME = jnp.zeros(6)
 Vec3 = tuple[Array, Array, Array]
 
 
-def _columns(v: Float[Array, "6 3"]) -> Vec3:
+def _columns(v: Float[ArrayLike, "6 3"]) -> Vec3:
     return v[:, 0], v[:, 1], v[:, 2]
 
 
@@ -43,12 +43,12 @@ def _cross(a: Vec3, b: Vec3) -> Vec3:
     )
 
 
-def platform_origin(table: Table, pose: Float[Array, "6"]) -> Float[Array, "3"]:
+def platform_origin(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "3"]:
     """t = (x, y, home_height + z), base frame, mm."""
     return pose[:3] + jnp.array([0.0, 0.0, 1.0]) * table.home_height
 
 
-def _legs(table: Table, pose: Float[Array, "6"], R) -> Vec3:
+def _legs(table: Table, pose: Float[ArrayLike, "6"], R) -> Vec3:
     """Components of l_i = t + R a_i^p - b_i, each (6,), mm."""
     a = _rotate(R, _columns(table.platform_joints))
     b = _columns(table.base_joints)
@@ -56,18 +56,18 @@ def _legs(table: Table, pose: Float[Array, "6"], R) -> Vec3:
     return tuple(t[k] + a[k] - b[k] for k in range(3))
 
 
-def leg_vectors(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6 3"]:
+def leg_vectors(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "6 3"]:
     """l_i = t + R a_i^p - b_i, base frame, mm. Shape (6, 3)."""
     return jnp.stack(_legs(table, pose, rotation_entries(pose[3:])), axis=-1)
 
 
-def leg_lengths(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6"]:
+def leg_lengths(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "6"]:
     """|l_i|, joint-to-joint length of each leg, mm. Shape (6,)."""
     l = _legs(table, pose, rotation_entries(pose[3:]))
     return jnp.sqrt(_dot(l, l))
 
 
-def _twist_sin_cos(table: Table, pose: Float[Array, "6"]):
+def _twist_sin_cos(table: Table, pose: Float[ArrayLike, "6"]):
     """(s, c) = r (sin β, cos β), r > 0, for the angle β between the planes (u, n) and (u, j)
     about the unit leg axis u = l/|l|, n the base joint's base-fixed axis and j = R j^p the
     platform joint's platform-fixed axis. Shapes (6,), (6,).
@@ -87,7 +87,7 @@ def _twist_sin_cos(table: Table, pose: Float[Array, "6"]):
     return s, c
 
 
-def rod_rotation(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6"]:
+def rod_rotation(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "6"]:
     """Δα_i: rotation of each rod relative to its barrel since home, rad. Shape (6,).
 
     Right-hand rule about the leg axis u_i (pointing base joint -> platform joint): positive is
@@ -102,12 +102,12 @@ def rod_rotation(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6"]:
     return jnp.arctan2(s * c0 - c * s0, c * c0 + s * s0)
 
 
-def spiral_extension(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6"]:
+def spiral_extension(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "6"]:
     """Δl2_i = hand_i · lead_i · Δα_i / (2π): passive extension from the rod rotation, mm."""
     return table.signed_lead * rod_rotation(table, pose) / (2 * jnp.pi)
 
 
-def paper_rod_rotation(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6"]:
+def paper_rod_rotation(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "6"]:
     """The paper's eqs. (15)-(19) taken literally, rad. Shape (6,). For comparison only.
 
     k_i = j_i × l_i / |l_i|, m_i = n_i × l_i / |l_i| (not unit unless the axis is perpendicular
@@ -138,17 +138,33 @@ def paper_rod_rotation(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6
     return (alpha - alpha0) * sign
 
 
-def joint_bend(table: Table, pose: Float[Array, "6"]) -> Float[Array, "2 6"]:
+def leg_lines(
+    table: Table, pose: Float[ArrayLike, "6"]
+) -> tuple[Float[ArrayLike, "6 3"], Float[ArrayLike, "6 3"]]:
+    """The legs as lines (Plücker coordinates, base frame): unit directions u_i (6, 3) and
+    moment arms R a_i^p × u_i (6, 3), mm. Row i of [u, R a × u] is row i of the rigid
+    kinematic Jacobian ∂L/∂(t, ω) and column i of the static wrench map of leg forces."""
+    l = leg_vectors(table, pose)
+    u = l / jnp.linalg.norm(l, axis=-1, keepdims=True)
+    ra = table.platform_joints @ rotation_matrix(pose[3:]).T
+    return u, jnp.cross(ra, u)
+
+
+def in_stroke(table: Table, lengths: Float[ArrayLike, "... 6"]) -> Bool[ArrayLike, "... 6"]:
+    """Elementwise: each joint-to-joint length (mm) inside the table's stroke [lo, hi]."""
+    lengths = jnp.asarray(lengths)
+    return (lengths >= table.stroke[0]) & (lengths <= table.stroke[1])
+
+
+def joint_bend(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "2 6"]:
     """U-joint bend angles from the home leg direction, rad. Shape (2, 6): (base, platform).
 
     A U-joint is taken to be mounted with its neutral direction along the leg at home; the
     base bend is the angle between u_i(q) and u_i(0) in the base frame, the platform bend the
     angle between Rᵀu_i(q) and u_i(0) in the platform frame.
     """
-    l = leg_vectors(table, pose)
-    u = l / jnp.linalg.norm(l, axis=-1, keepdims=True)
-    l0 = home_leg_vectors(table)
-    u0 = l0 / jnp.linalg.norm(l0, axis=-1, keepdims=True)
+    u, _ = leg_lines(table, pose)
+    u0, _ = leg_lines(table, HOME)
     R = rotation_matrix(pose[3:])
     up = u @ R  # rows: Rᵀ u_i
 
@@ -158,10 +174,8 @@ def joint_bend(table: Table, pose: Float[Array, "6"]) -> Float[Array, "2 6"]:
     return jnp.stack([angle(u, u0), angle(up, u0)])
 
 
-def within_limits(table: Table, pose: Float[Array, "6"]) -> Array:
+def within_limits(table: Table, pose: Float[ArrayLike, "6"]) -> Array:
     """True when every leg length |l_i| is inside the stroke and every U-joint bend is within
     the table's joint angle limit (bool scalar)."""
-    L = leg_lengths(table, pose)
-    bend = jnp.max(joint_bend(table, pose))
-    in_stroke = jnp.all((L >= table.stroke[0]) & (L <= table.stroke[1]))
-    return in_stroke & (bend <= table.joint_angle_limit)
+    stroke_ok = jnp.all(in_stroke(table, leg_lengths(table, pose)))
+    return stroke_ok & (jnp.max(joint_bend(table, pose)) <= table.joint_angle_limit)

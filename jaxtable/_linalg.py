@@ -11,10 +11,10 @@ no custom call; at n = 6 they are as fast.
 import jax
 import jax.numpy as jnp
 import lineax as lx
-from jaxtyping import Array, Float
+from jaxtyping import ArrayLike, Float
 
 
-def lu_small(A: Float[Array, "n n"]):
+def lu_small(A: Float[ArrayLike, "n n"]):
     """PA = LU with partial pivoting, unrolled over the n columns. Returns (LU, perm): the
     unit-lower multipliers below the diagonal, U on and above it; `perm` the row order.
 
@@ -39,7 +39,7 @@ def lu_small(A: Float[Array, "n n"]):
     return M, perm
 
 
-def lu_solve_small(LU, perm, B: Float[Array, "n k"]) -> Float[Array, "n k"]:
+def lu_solve_small(LU, perm, B: Float[ArrayLike, "n k"]) -> Float[ArrayLike, "n k"]:
     """Solve A X = B from `lu_small(A)`; linear in B (so it transposes for reverse mode)."""
     n = LU.shape[0]
     rows = jnp.arange(n)
@@ -53,16 +53,16 @@ def lu_solve_small(LU, perm, B: Float[Array, "n k"]) -> Float[Array, "n k"]:
     return X
 
 
-def solve_small(A: Float[Array, "n n"], B: Float[Array, "n k"]) -> Float[Array, "n k"]:
+def solve_small(A: Float[ArrayLike, "n n"], B: Float[ArrayLike, "n k"]) -> Float[ArrayLike, "n k"]:
     """A⁻¹ B by Gaussian elimination with partial pivoting."""
     return lu_solve_small(*lu_small(A), B)
 
 
-def inv_small(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
+def inv_small(A: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "n n"]:
     return solve_small(A, jnp.eye(A.shape[0], dtype=A.dtype))
 
 
-def largest_eigval_small(S: Float[Array, "n n"], squarings: int = 12) -> Float[Array, ""]:
+def largest_eigval_small(S: Float[ArrayLike, "n n"], squarings: int = 12) -> Float[ArrayLike, ""]:
     """Largest eigenvalue of a symmetric positive semi-definite matrix: repeated squaring
     (S^(2^k), normalised by its trace) isolates the dominant eigenvector, whose Rayleigh
     quotient is the eigenvalue (error quadratic in the eigenvector's, so ~1e-9 relative or
@@ -77,7 +77,7 @@ def largest_eigval_small(S: Float[Array, "n n"], squarings: int = 12) -> Float[A
     return (v @ S @ v) / (v @ v)
 
 
-def cond_small(J: Float[Array, "n n"]) -> Float[Array, ""]:
+def cond_small(J: Float[ArrayLike, "n n"]) -> Float[ArrayLike, ""]:
     """2-norm condition number σ_max / σ_min of a square matrix, from the extreme
     eigenvalues of JᵀJ and of its inverse."""
     S = J.T @ J

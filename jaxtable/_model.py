@@ -8,7 +8,7 @@ Inverse, forward, sensitivities, fits and the simulator all evaluate `length_res
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import ArrayLike, Float
 
 from ._context import Context
 from ._effects import Effects
@@ -21,10 +21,10 @@ INVERSE_NEWTON_STEPS = 8
 def effect_lengths(
     table: Table,
     effects: Effects,
-    pose: Float[Array, "6"],
-    s: Float[Array, "6"],
+    pose: Float[ArrayLike, "6"],
+    s: Float[ArrayLike, "6"],
     ctx: Context | None = None,
-) -> Float[Array, "6"]:
+) -> Float[ArrayLike, "6"]:
     """Sum of the extra lengths of all `effects` at one pose, mm. Shape (6,). `ctx`: the
     stop's context (default: the home context, direction +1, 20 °C, no payload, session 0)."""
     ctx = Context() if ctx is None else ctx
@@ -35,22 +35,22 @@ def effect_lengths(
 
 
 def actuator_length(
-    table: Table, effects: Effects, pose: Float[Array, "6"], s: Float[Array, "6"], ctx=None
-) -> Float[Array, "6"]:
+    table: Table, effects: Effects, pose: Float[ArrayLike, "6"], s: Float[ArrayLike, "6"], ctx=None
+) -> Float[ArrayLike, "6"]:
     """L0_i + s_i + sum of effects: the joint-to-joint length the actuator side produces, mm."""
     return table.zero_lengths + s + effect_lengths(table, effects, pose, s, ctx)
 
 
 def length_residual(
-    table: Table, effects: Effects, pose: Float[Array, "6"], s: Float[Array, "6"], ctx=None
-) -> Float[Array, "6"]:
+    table: Table, effects: Effects, pose: Float[ArrayLike, "6"], s: Float[ArrayLike, "6"], ctx=None
+) -> Float[ArrayLike, "6"]:
     """|l_i(q)| − (L0_i + s_i + effects): zero when pose and extensions are consistent, mm."""
     return leg_lengths(table, pose) - actuator_length(table, effects, pose, s, ctx)
 
 
 def inverse_extension(
-    table: Table, effects: Effects, pose: Float[Array, "6"], ctx: Context | None = None
-) -> tuple[Float[Array, "6"], Float[Array, "6"]]:
+    table: Table, effects: Effects, pose: Float[ArrayLike, "6"], ctx: Context | None = None
+) -> tuple[Float[ArrayLike, "6"], Float[ArrayLike, "6"]]:
     """Actuator extensions s (6,) that put the table at `pose`, and the final residual (6,).
 
     Explicit when no effect depends on s; otherwise a per-leg Newton iteration (each leg's

@@ -13,7 +13,8 @@ import numpy as np
 
 from ._context import Context
 from ._effects import Effects, resolve_effects
-from ._errors import KinematicsError, require_x64
+from ._errors import KinematicsError, renamed_argument, require_x64
+from ._kinematics import in_stroke
 from ._model import inverse_extension
 from ._table import Table
 
@@ -31,7 +32,6 @@ class CommandFunction:
 
     def __init__(self, table: Table, effects: Effects, context: Context, check: bool):
         require_x64()
-        lo, hi = table.stroke[0], table.stroke[1]
 
         def one(pose):
             s, _ = inverse_extension(table, effects, pose, context)
@@ -40,7 +40,7 @@ class CommandFunction:
             # 1 = non-finite pose, 2 = a command outside the stroke
             bad = jnp.where(
                 jnp.all(jnp.isfinite(pose)),
-                jnp.where(check & jnp.any((cmd < lo) | (cmd > hi)), 2.0, 0.0),
+                jnp.where(check & ~jnp.all(in_stroke(table, cmd)), 2.0, 0.0),
                 1.0,
             )
             return jnp.concatenate([cmd, bad[None]])
@@ -72,17 +72,21 @@ class CommandFunction:
 def command_function(
     table: Table,
     *,
-    compensate: bool = True,
+    compensated: bool = True,
+    compensate: bool | None = None,
     effects: Effects | None = None,
     context: Context | None = None,
     check: bool = True,
 ) -> CommandFunction:
     """Compile the single-pose command for a real-time loop; see `CommandFunction`.
 
-    Same result as `actuator_command(table, pose, compensate, effects=..., context=...)` for
+    Same result as `actuator_command(table, pose, compensated, effects=..., context=...)` for
     one pose (default effects: the table's hardware effects, i.e. the passive spiral term),
     at a fraction of the per-call cost. Compiling takes about a second; do it before the
     loop starts. `context`: one fixed stop context (default home: 20 °C, no payload).
     """
-    eff = resolve_effects(table, effects) if compensate else {}
+    compensated = renamed_argument(
+        compensated, compensate, "compensate", "compensated", "command_function"
+    )
+    eff = resolve_effects(table, effects) if compensated else {}
     return CommandFunction(table, eff, Context() if context is None else context, check)

@@ -3,12 +3,12 @@
 import math
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 ARCSEC_PER_RAD = math.degrees(1.0) * 3600.0
 
 
-def rotation_entries(angles: Float[Array, "3"]) -> tuple[tuple[Array, Array, Array], ...]:
+def rotation_entries(angles: Float[ArrayLike, "3"]) -> tuple[tuple[Array, Array, Array], ...]:
     """The nine entries of `rotation_matrix` as a row-major tuple of scalar tuples.
 
     Kept unstacked so that under `vmap` each entry is one elementwise expression fused into
@@ -25,7 +25,7 @@ def rotation_entries(angles: Float[Array, "3"]) -> tuple[tuple[Array, Array, Arr
     )
 
 
-def rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
+def rotation_matrix(angles: Float[ArrayLike, "3"]) -> Float[ArrayLike, "3 3"]:
     """R = Rz(yaw) @ Ry(pitch) @ Rx(roll), platform frame -> base frame.
 
     **Arguments:** `angles`: (roll, pitch, yaw) = (φ, θ, ψ) in radians, shape (3,).
@@ -37,7 +37,7 @@ def rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
     return jnp.array(rotation_entries(angles))
 
 
-def paper_rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
+def paper_rotation_matrix(angles: Float[ArrayLike, "3"]) -> Float[ArrayLike, "3 3"]:
     """The paper's eq. (2) exactly as printed, typos included. For comparison only.
 
     Elements (1,3), (2,2) and (2,3) (1-based) are misprinted; the matrix is in general not a
@@ -56,7 +56,7 @@ def paper_rotation_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
     )
 
 
-def euler_rate_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
+def euler_rate_matrix(angles: Float[ArrayLike, "3"]) -> Float[ArrayLike, "3 3"]:
     """E(φ, θ, ψ) with ω = E @ (dφ, dθ, dψ): Z-Y-X Euler-angle rates to the base-frame angular
     velocity (equivalently, small Euler increments to the small rotation vector).
 
@@ -72,3 +72,43 @@ def euler_rate_matrix(angles: Float[Array, "3"]) -> Float[Array, "3 3"]:
             [-st, 0.0, 1.0],
         ]
     )
+
+
+def euler_from_matrix(R: Float[ArrayLike, "3 3"]) -> Float[ArrayLike, "3"]:
+    """(roll, pitch, yaw) of R = Rz(yaw) Ry(pitch) Rx(roll), rad, shape (3,); the inverse of
+    `rotation_matrix` for pitch in (−π/2, π/2)."""
+    return jnp.stack(
+        [
+            jnp.arctan2(R[2, 1], R[2, 2]),
+            -jnp.arcsin(jnp.clip(R[2, 0], -1.0, 1.0)),
+            jnp.arctan2(R[1, 0], R[0, 0]),
+        ]
+    )
+
+
+def rotation_log(R: Float[ArrayLike, "3 3"]) -> Float[ArrayLike, "3"]:
+    """Rotation vector ω (rad, shape (3,)) with R = exp([ω]×): the SO(3) log map. The angle
+    is atan2 of the skew and symmetric parts, so it is accurate at every angle below π, and
+    the small-angle branch keeps the gradient finite at the identity."""
+    w = 0.5 * jnp.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sin = jnp.sqrt(jnp.sum(w * w))
+    cos = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    small = sin < 1e-12
+    safe = jnp.where(small, 1.0, sin)
+    scale = jnp.where(small, 1.0 + sin**2 / 6, jnp.arctan2(sin, cos) / safe)
+    return w * scale
+
+
+def pose_error(
+    actual: Float[ArrayLike, "6"], commanded: Float[ArrayLike, "6"]
+) -> Float[ArrayLike, "6"]:
+    """The error of pose `actual` against `commanded` (both (x, y, z, roll, pitch, yaw), mm /
+    rad), shape (6,): translation difference (mm, base frame), then the rotation vector of
+    R(actual) R(commanded)ᵀ (rad, base frame; `rotation_log`).
+
+    This is jaxtable's one pose-error measure: every report, error map and Monte Carlo
+    result uses it. It is an angle whatever the attitude, unlike a difference of Euler
+    angles, which it equals to first order at zero attitude only.
+    """
+    D = rotation_matrix(actual[3:]) @ rotation_matrix(commanded[3:]).T
+    return jnp.concatenate([actual[:3] - commanded[:3], rotation_log(D)])

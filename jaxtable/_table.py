@@ -3,7 +3,7 @@
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._errors import TableFileError, is_concrete
 
@@ -35,18 +35,18 @@ class Table(eqx.Module):
     parallel to legs) by `check_table`, which `load_table` calls.
     """
 
-    base_joints: Float[Array, "6 3"]
-    platform_joints: Float[Array, "6 3"]
-    base_axes: Float[Array, "6 3"]
-    platform_axes: Float[Array, "6 3"]
-    zero_lengths: Float[Array, "6"]
-    home_height: Float[Array, ""]
-    lead: Float[Array, "6"]
-    hand: Float[Array, "6"]
-    stroke: Float[Array, "2"]
-    joint_angle_limit: Float[Array, ""]
-    platform_mass: Float[Array, ""]
-    platform_cog: Float[Array, "3"]
+    base_joints: Float[ArrayLike, "6 3"]
+    platform_joints: Float[ArrayLike, "6 3"]
+    base_axes: Float[ArrayLike, "6 3"]
+    platform_axes: Float[ArrayLike, "6 3"]
+    zero_lengths: Float[ArrayLike, "6"]
+    home_height: Float[ArrayLike, ""]
+    lead: Float[ArrayLike, "6"]
+    hand: Float[ArrayLike, "6"]
+    stroke: Float[ArrayLike, "2"]
+    joint_angle_limit: Float[ArrayLike, ""]
+    platform_mass: Float[ArrayLike, ""]
+    platform_cog: Float[ArrayLike, "3"]
     name: str = eqx.field(static=True)
 
     def __init__(
@@ -78,8 +78,7 @@ class Table(eqx.Module):
         self.platform_cog = _f64(platform_cog)
         self.name = name
         if zero_lengths is None:
-            t = jnp.array([0.0, 0.0, 1.0]) * self.home_height
-            zero_lengths = jnp.linalg.norm(t + self.platform_joints - self.base_joints, axis=-1)
+            zero_lengths = jnp.linalg.norm(home_leg_vectors(self), axis=-1)
         self.zero_lengths = _f64(zero_lengths)
 
     def __check_init__(self):
@@ -101,12 +100,12 @@ class Table(eqx.Module):
                 raise TableFileError(f"table '{field}' must have shape {shape}; got {got}")
 
     @property
-    def signed_lead(self) -> Float[Array, "6"]:
+    def signed_lead(self) -> Float[ArrayLike, "6"]:
         """hand · lead, mm/rev: positive for a right-hand screw, negative for a left-hand one."""
         return self.hand * self.lead
 
 
-def home_leg_vectors(table: Table) -> Float[Array, "6 3"]:
+def home_leg_vectors(table: Table) -> Float[ArrayLike, "6 3"]:
     """l_i at the home pose, base frame, mm. Shape (6, 3)."""
     t = jnp.array([0.0, 0.0, 1.0]) * table.home_height
     return t + table.platform_joints - table.base_joints

@@ -5,9 +5,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from ._data import DataFileError
+from ._analysis.tolerances import ToleranceFileError
+from ._calibration.measurements import DataFileError
 from ._errors import KinematicsError, TableFileError
-from ._tolerance import ToleranceFileError
+from ._params import GEOMETRY
 
 
 def _table(path):
@@ -17,7 +18,7 @@ def _table(path):
 
 
 def _spiral(args) -> int:
-    from ._spiral_report import spiral_report
+    from ._reports.spiral import spiral_report
 
     table = _table(args.table)
     print(
@@ -52,9 +53,10 @@ def _parse_fixed(text: str, flag: str = "--fixed") -> list[float]:
 
 
 def _map(args) -> int:
-    from ._errormap import error_map, workspace_slice
-    from ._map_report import budget_chart, slice_figures, summary_markdown, x_stroke_figure
-    from ._tolerance import Tolerances, load_tolerances
+    from ._analysis.errormap import error_map
+    from ._analysis.tolerances import Tolerances, load_tolerances
+    from ._analysis.workspaces import workspace_slice
+    from ._reports.errormap import write_map_report
 
     table = _table(args.table)
     tol = Tolerances() if args.tolerances is None else load_tolerances(args.tolerances)
@@ -65,46 +67,50 @@ def _map(args) -> int:
         grid = workspace_slice(dofs, args.n, fixed=_parse_fixed(args.fixed))
     except ValueError as e:
         raise UsageError(str(e)) from None
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     emap, summary = error_map(table, tol, grid, progress=True)
-    stem = f"map_{dofs[0]}_{dofs[1]}"
-    slice_figures(table, emap, out, stem)
-    x_stroke_figure(table, tol, out)
-    budget_chart(summary, out)
-    text = "\n".join(
-        [
-            f"# Error map: {table.name}",
-            "",
-            "Tolerances (file units): "
-            + ", ".join(f"{k} = {v:g}" for k, v in tol.as_dict().items()),
-            "",
-            summary_markdown(summary, f"{dofs[0]}-{dofs[1]} slice, {args.n} x {args.n} poses"),
-            f"Figures: {stem}.png, error_x_stroke.png, error_budget.png",
-            "",
-        ]
-    )
-    (out / "map.md").write_text(text)
+    text = write_map_report(table, tol, emap, summary, args.out, dofs, args.n)
     print(text)
     return 0
 
 
+def _sigma_arg(text: str | None) -> dict | None:
+    """--sigma 'x=0.01,roll=2arcsec' or an instrument preset (tracker6, point3,
+    interferometer) -> {column: σ (mm / rad)}."""
+    from ._calibration.instruments import INSTRUMENTS
+    from ._calibration.noise import parse_sigma
+    from ._params import POSE
+
+    if not text:
+        return None
+    if text in INSTRUMENTS:
+        inst = INSTRUMENTS[text]()
+        return {POSE[k]: float(inst.noise[k]) for k in inst.columns}
+    try:
+        return parse_sigma(text)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
 def _pose_arg(text: str, flag: str) -> list[float]:
     """'x=50,yaw=2' (mm / deg) -> 6 values in mm / rad."""
-    import numpy as np
+    from ._params import pose_from_file
 
-    vals = np.asarray(_parse_fixed(text, flag), dtype=float)
-    vals[3:] = np.deg2rad(vals[3:])
-    return vals.tolist()
+    return pose_from_file(_parse_fixed(text, flag)).tolist()
 
 
 def _simulate(args) -> int:
 
-    from ._data import save_measurements
-    from ._instrument import INSTRUMENTS
+    from ._calibration.instruments import INSTRUMENTS
+    from ._calibration.measurements import save_measurements
+    from ._calibration.simulate import (
+        perturb_table,
+        plan_grid,
+        plan_random,
+        plan_swing,
+        plan_x_line,
+    )
+    from ._calibration.simulate import simulate as run
     from ._io import save_table
-    from ._simulate import perturb_table, plan_grid, plan_random, plan_swing, plan_x_line
-    from ._simulate import simulate as run
 
     table = _table(args.table)
     true = perturb_table(table, args.seed, args.joint_sigma, args.zero_sigma)
@@ -124,7 +130,7 @@ def _simulate(args) -> int:
         true,
         poses,
         INSTRUMENTS[args.instrument](),
-        compensate=not args.uncompensated,
+        compensated=args.compensated,
         frame=_pose_arg(args.frame, "--frame"),
         target=_pose_arg(args.target, "--target"),
         seed=args.seed,
@@ -146,12 +152,11 @@ def _simulate(args) -> int:
 
 
 def _calibrate(args) -> int:
-    import numpy as np
-
-    from ._calibrate import fit, setup
-    from ._data import load_measurements
-    from ._io import save_table
-    from ._table import replace
+    from ._calibration.fit import fit, setup
+    from ._calibration.measurements import load_measurements
+    from ._calibration.posterior import posterior, predictive_bands
+    from ._calibration.simulate import plan_x_line
+    from ._reports.calibrate import write_calibration_report
 
     table = _table(args.table)
     data = load_measurements(args.data)
@@ -162,101 +167,30 @@ def _calibrate(args) -> int:
             table,
             data,
             free,
-            compensated=not args.uncompensated,
+            compensated=args.compensated,
             estimate_frame=not args.no_frame,
+            sigma=_sigma_arg(args.sigma),
         )
-        cal = fit(st)
+        cal = fit(st, noise=args.noise)
     except ValueError as e:
-        print(f"jaxtable calibrate: error: {args.data}: {e}", file=sys.stderr)
-        return 2
-    fitted = cal.table
-    if "spiral" in cal.effects:
-        lead = np.asarray(cal.effects["spiral"].lead)
-        fitted = replace(fitted, lead=np.abs(lead), hand=np.where(lead < 0, -1.0, 1.0))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    save_table(
-        fitted,
-        out / "calibrated_table.toml",
-        header=f"Calibrated from {args.data} (free: {', '.join(free)}); joint centres "
-        "are fitted modulo rigid motions where the instrument frame was "
-        "estimated (see report.md).",
-        effects=cal.effects,
-    )
-    rows = [f"| {n} | {v:+.5g} | {s:.3g} |" for n, v, s in zip(cal.names, cal.value, cal.std)]
-    frames = "\n".join(
-        f"- session {lab}: "
-        + ", ".join(f"{c} {v:+.4f}" for c, v in zip("x y z".split(), cal.frame[k, :3]))
-        + " mm, "
-        + ", ".join(
-            f"{c} {np.rad2deg(v):+.5f}°" for c, v in zip("roll pitch yaw".split(), cal.frame[k, 3:])
-        )
-        for k, lab in enumerate(data.sessions)
-    )
-    text = "\n".join(
-        [
-            f"# Calibration of {table.name} from {args.data}",
-            "",
-            "```",
-            cal.report(),
-            "```",
-            "",
-            "Instrument frame (pose of the base frame in the instrument frame) per session:",
-            "",
-            frames,
-            "",
-            "| parameter (change from nominal) | value | σ |",
-            "|---|---|---|",
-            *rows,
-            "",
-        ]
-    )
-    from ._diagnose import _folds, heldout_rms
-
-    folds = _folds(len(data), 5, 0)
-    text += (
-        f"\nHeld-out check (5-fold: each fifth of the rows predicted by the fit to the rest): "
-        f"RMS {heldout_rms(cal, folds, st.mask):.3f} σ, against "
-        f"{float(np.sqrt(np.mean(cal.residual[st.mask] ** 2))):.3f} σ on the fitted rows "
-        "(1.0 = the instrument noise).\n"
-    )
+        raise UsageError(f"{args.data}: {e}") from None
+    post = bands = None
     if args.mcmc:
-        from ._posterior import corner_plot, plot_bands, posterior, predictive_bands
-        from ._simulate import plan_x_line
-
         post = posterior(st, cal, n_steps=args.steps, seed=0, progress=True)
-        corner_plot(post, out / "corner.png")
         bands = predictive_bands(st, post, plan_x_line(), n_samples=100)
-        plot_bands(bands, out / "bands.png")
-        text += "\n".join(
-            [
-                "",
-                "## Posterior (emcee)",
-                "",
-                "```",
-                post.summary(),
-                "```",
-                "",
-                "![corner](corner.png)",
-                "",
-                "Posterior-predictive pose error along the x stroke (nominal controller, "
-                "sampled tables):",
-                "",
-                "![bands](bands.png)",
-                "",
-            ]
-        )
-    (out / "report.md").write_text(text)
+    paths = write_calibration_report(
+        table, st, cal, data, args.out, str(args.data), posterior=post, bands=bands
+    )
     print(cal.report())
-    print(f"wrote {out / 'calibrated_table.toml'} and {out / 'report.md'}", file=sys.stderr)
+    print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0
 
 
 def _diagnose(args) -> int:
-    from ._data import load_measurements
-    from ._diagnose import diagnose
-    from ._diagnose_report import write_report
+    from ._calibration.measurements import load_measurements
+    from ._discovery.diagnose import diagnose
     from ._effects import EFFECTS
+    from ._reports.diagnose import write_report
 
     table = _table(args.table)
     if args.data is None:
@@ -278,12 +212,14 @@ def _diagnose(args) -> int:
     json_path = Path(args.json) if args.json else out / "diagnosis.json"
     try:
         diag = diagnose(
-            data,
             table,
+            data,
             base=base,
             library=library,
             compensated=args.compensated,
             alpha=args.alpha,
+            noise=args.noise,
+            sigma=_sigma_arg(args.sigma),
             folds=args.folds,
         )
     except ValueError as e:
@@ -298,14 +234,55 @@ def _diagnose(args) -> int:
     return 0
 
 
-def _bench(args) -> int:
-    from ._bench import markdown, run_benchmark, write
+def _validate(args) -> int:
+    import warnings
 
-    r = run_benchmark(_table(args.table), quick=args.quick, log=lambda m: print(m, file=sys.stderr))
-    print(markdown(r))
-    paths = write(r, args.out)
+    from ._calibration.measurements import load_measurements
+    from ._calibration.model_file import load_fitted_model
+    from ._calibration.validate import validate_model
+    from ._reports.validate import write_validation_report
+
+    model = load_fitted_model(args.model)
+    data = load_measurements(args.data)
+    nominal = None if args.table is None else _table(args.table)
+    print(f"predicting {len(data)} rows of {args.data} with {args.model} ...", file=sys.stderr)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the report says "fit" in words
+            v = validate_model(
+                model, data, register=args.register, compensated=args.compensated, nominal=nominal
+            )
+    except ValueError as e:
+        raise UsageError(f"{args.data}: {e}") from None
+    out = Path(args.out)
+    json_path = Path(args.json) if args.json else out / "validation.json"
+    paths = write_validation_report(v, out, str(args.model), str(args.data), json_path)
+    kind = "predicted" if v.is_prediction else "FIT, not a prediction: every row registered"
+    print(
+        f"{kind}: {v.rows_predicted} rows predicted, {v.rows_registered} registered; RMS "
+        + ", ".join(f"{c} {r:.4g}" for c, r in v.rms.items())
+        + ("" if v.leg_rms is None else f"; legs {v.leg_rms:.4g} mm")
+    )
     print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0
+
+
+def _bench(args) -> int:
+    # The benchmark and its numpy/scipy baselines live in the source checkout's benchmarks/
+    # (the installed library carries one kinematics only).
+    root = Path(__file__).resolve().parents[1]
+    if not (root / "benchmarks" / "bench.py").exists():
+        raise UsageError(
+            "the benchmark lives in the source checkout (benchmarks/); run `python -m "
+            "benchmarks` from a clone of the repository"
+        )
+    sys.path.insert(0, str(root))
+    from benchmarks.__main__ import main as bench_main
+
+    argv = ["--out", str(args.out)] + (["--quick"] if args.quick else [])
+    if args.table is not None:
+        argv += ["--table", str(args.table)]
+    return bench_main(argv)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -324,6 +301,44 @@ def build_parser() -> argparse.ArgumentParser:
             type=Path,
             default=Path(out_default),
             help=f"output directory (default: {out_default})",
+        )
+
+    def noise_options(sp, default):
+        sp.add_argument(
+            "--sigma",
+            default=None,
+            help="state the measurement σ: 'x=0.01,roll=2arcsec' (bare numbers: mm, deg; "
+            "units mm, um, deg, arcsec, rad; xyz= / angles= for a group) or an instrument "
+            "preset (tracker6, point3, interferometer); overrides the file's sigma_ columns",
+        )
+        sp.add_argument(
+            "--noise",
+            choices=["estimate", "fixed"],
+            default=default,
+            help="estimate: σ of each column group estimated from the fit (a stated σ is "
+            "tested against it); fixed: trust the stated σ"
+            + (" (default: fixed when every cell has a stated σ)" if default is None else ""),
+        )
+
+    def compensation(sp, default=None, what="without cmd_l columns: the controller"):
+        """--compensated / --uncompensated, the same pair in every verb (DESIGN.md: without
+        cmd_l columns on a table with a lead, the user must say which)."""
+        g = sp.add_mutually_exclusive_group()
+        g.add_argument(
+            "--compensated",
+            dest="compensated",
+            action="store_const",
+            const=True,
+            default=default,
+            help=f"{what} compensated the passive spiral term"
+            + (" (default)" if default is True else ""),
+        )
+        g.add_argument(
+            "--uncompensated",
+            dest="compensated",
+            action="store_const",
+            const=False,
+            help=f"{what} did not compensate the passive spiral term",
         )
 
     sp = sub.add_parser(
@@ -373,11 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--zero-sigma", type=float, default=0.050, help="mm (default 0.050)")
     sp.add_argument("--frame", default="", help="instrument frame, e.g. 'x=50,yaw=2' (mm, deg)")
     sp.add_argument("--target", default="", help="target on the platform, e.g. 'z=80'")
-    sp.add_argument(
-        "--uncompensated",
-        action="store_true",
-        help="the controller does not compensate the spiral term",
-    )
+    compensation(sp, default=True, what="the simulated controller")
     sp.set_defaults(func=_simulate)
 
     sp = sub.add_parser(
@@ -389,7 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
     common(sp, "out/calibrate")
     sp.add_argument(
         "--free",
-        default="base_joints,platform_joints,zero_lengths",
+        default=",".join(GEOMETRY),
         help="comma-separated free parameters (table leaves or effect.field, e.g. spiral.lead)",
     )
     sp.add_argument(
@@ -397,11 +408,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="data are in the base frame: do not estimate the instrument frame",
     )
-    sp.add_argument(
-        "--uncompensated",
-        action="store_true",
-        help="without cmd_l columns: the controller did not compensate the spiral",
-    )
+    compensation(sp)
+    noise_options(sp, "estimate")
     sp.add_argument(
         "--mcmc",
         action="store_true",
@@ -428,16 +436,33 @@ def build_parser() -> argparse.ArgumentParser:
         "--base", default="", help="effects already in the starting model, e.g. 'spiral'"
     )
     sp.add_argument("--effects", default="", help="candidate effects (default: the whole library)")
-    sp.add_argument(
-        "--compensated",
-        action="store_true",
-        help="without cmd_l columns: the controller compensated the spiral term",
-    )
+    compensation(sp)
+    noise_options(sp, None)
     sp.add_argument(
         "--alpha", type=float, default=0.01, help="false-alarm rate of the χ² test (0.01)"
     )
     sp.add_argument("--folds", type=int, default=5, help="k of the k-fold held-out score (5)")
     sp.set_defaults(func=_diagnose)
+
+    sp = sub.add_parser(
+        "validate",
+        help="predict measured data with a fitted model file (calibrated_table.toml): stored "
+        "frames for known sessions, a new session's frame registered on its first N rows",
+    )
+    sp.add_argument("model", type=Path, help="fitted model file (calibrate / diagnose --out)")
+    sp.add_argument("data", type=Path, help="measurement CSV")
+    common(sp, "out/validate")
+    sp.set_defaults(table=None)
+    sp.add_argument(
+        "--register",
+        type=int,
+        default=None,
+        help="rows at the start of each new session that register its frame; the rest are "
+        "predicted (default: all rows, which makes the result a fit, not a prediction)",
+    )
+    sp.add_argument("--json", default=None, help="JSON result (default: OUT/validation.json)")
+    compensation(sp)
+    sp.set_defaults(func=_validate)
 
     sp = sub.add_parser(
         "bench",

@@ -1,8 +1,16 @@
+from pathlib import Path
+
 import jax
 import numpy as np
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# Share compiled programs between the test workers (pytest-xdist) and between runs: JAX's
+# persistent compilation cache, in the (git-ignored) pytest cache directory.
+jax.config.update(
+    "jax_compilation_cache_dir", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax")
+)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 import jaxtable as jt  # noqa: E402
 

@@ -36,7 +36,7 @@ fk = jt.forward_solve(table, cmd, chunk=8)
 sens, _ = jt.pose_sensitivity(table, poses[:11], chunk=4)
 _, summary = jt.error_map(table, grid=poses[:13], keep=False, chunk=5)
 _, cmap = jt.command_map(table, jt.workspace_slice(("x", "yaw"), n=(7, 5)), chunk=9)
-mc = jt.monte_carlo(table, poses[:3], n_samples=5, seed=1)
+mc = jt.monte_carlo(table, jt.Tolerances(), poses[:3], n_samples=5, seed=1)
 meas = jt.simulate(table, jt.perturb_table(table, seed=2), poses[:9], jt.tracker6(), seed=3)
 np.savez(
     sys.argv[1],
@@ -45,7 +45,7 @@ np.savez(
     mesh=0 if jt.batch_mesh() is None else jt.batch_mesh().size,
     cmd=cmd,
     fk_pose=np.asarray(fk.pose),
-    fk_code=np.asarray(fk.code),
+    fk_ok=np.asarray(fk.ok),
     sens=np.asarray(sens),
     map_total=summary["sources"]["total"]["trans_max_mm"],
     cmap_spiral=np.asarray(cmap["spiral_max_mm"]),

@@ -46,7 +46,7 @@ def test_command_function_matches_batch_command_and_checks_input(table):
     f = jt.command_function(table)
     got = np.stack([f(q) for q in poses])
     np.testing.assert_allclose(got, np.asarray(jt.actuator_command(table, poses)), atol=1e-12)
-    rigid = jt.command_function(table, compensate=False)
+    rigid = jt.command_function(table, compensated=False)
     np.testing.assert_allclose(rigid(poses[0]), np.asarray(jt.leg_lengths(table, poses[0])))
     assert isinstance(got[0], np.ndarray) and got[0].dtype == np.float64
     with pytest.raises(jt.KinematicsError, match="non-finite"):

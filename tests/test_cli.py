@@ -57,9 +57,9 @@ def test_simulate_then_calibrate(tmp_path, capsys):
     report = (out / "report.md").read_text()
     # L0 within 4σ of the truth (σ from the report; the 10 µm joint errors are unmodelled)
     sigma = [
-        float(line.split("|")[3])
+        float(line.split("|")[4])  # | label | `key` | value | σ |
         for line in report.splitlines()
-        if line.startswith("| zero_lengths[")
+        if "| `zero_lengths[" in line
     ]
     err = np.asarray(fitted.zero_lengths) - np.asarray(true.zero_lengths)
     assert len(sigma) == 6 and np.all(np.abs(err) < 4 * np.asarray(sigma) + 0.012)

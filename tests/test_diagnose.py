@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 import jaxtable as jt
-from jaxtable._calibrate import _residual_jit, fit
-from jaxtable._data import save_measurements
-from jaxtable._diagnose import _folds, diagnose, heldout_rms
-from jaxtable._instrument import tracker6
-from jaxtable._simulate import perturb_table, plan_random, simulate
+from jaxtable._calibration.fit import fit, residual_jit
+from jaxtable._calibration.instruments import tracker6
+from jaxtable._calibration.measurements import save_measurements
+from jaxtable._calibration.simulate import perturb_table, plan_random, simulate
+from jaxtable._discovery.diagnose import diagnose, heldout_rms, make_folds
 from jaxtable.cli import main
 
 N = 150
@@ -81,7 +81,7 @@ def case(which: str, seed: int):
         plan_random(N, seed),
         tracker6(),
         effects=eff,
-        compensate=False,
+        compensated=False,
         seed=seed,
         **kw,
     )
@@ -115,7 +115,7 @@ def _check_single(which, seeds):
     z = []
     for seed in seeds:
         nominal, data, eff = case(which, seed)
-        diag = diagnose(data, nominal, log=_quiet)
+        diag = diagnose(nominal, data, log=_quiet)
         assert diag.selected and diag.selected[0] == which, (seed, diag.selected)
         assert not diag.unexplained, seed
         assert diag.heldout_rms_after <= 1.3, (seed, diag.heldout_rms_after)
@@ -143,7 +143,7 @@ def test_hidden_effect_five_seeds(which):
 @pytest.mark.parametrize("which", ["spiral+backlash", "lead_scale+thermal"])
 def test_two_hidden_effects_are_both_selected(which):
     nominal, data, eff = case(which, 7)
-    diag = diagnose(data, nominal, log=_quiet)
+    diag = diagnose(nominal, data, log=_quiet)
     assert set(diag.selected) == set(which.split("+")), diag.selected
     assert not diag.unexplained
     assert diag.heldout_rms_after <= 1.3
@@ -153,7 +153,7 @@ def _null_selections(seeds):
     out = []
     for seed in seeds:
         nominal, data, _ = case("null", seed)
-        out.append(diagnose(data, nominal, log=_quiet).selected)
+        out.append(diagnose(nominal, data, log=_quiet).selected)
     return out
 
 
@@ -171,7 +171,7 @@ def test_null_data_select_nothing_40_seeds():
 @pytest.mark.parametrize("seed", [0])
 def test_effect_outside_the_library_is_unexplained(seed):
     nominal, data, _ = case("extension_squared", seed)
-    diag = diagnose(data, nominal, log=_quiet)
+    diag = diagnose(nominal, data, log=_quiet)
     assert diag.unexplained, diag.selected
     assert diag.selected == [], diag.selected  # no library name is forced on it
 
@@ -180,22 +180,23 @@ def test_effect_outside_the_library_is_unexplained(seed):
 def test_effect_outside_the_library_six_seeds():
     for seed in range(1, 7):
         nominal, data, _ = case("extension_squared", seed)
-        diag = diagnose(data, nominal, log=_quiet)
+        diag = diagnose(nominal, data, log=_quiet)
         assert diag.unexplained and diag.selected == [], (seed, diag.selected)
 
 
 def test_heldout_formula_equals_refits():
     nominal, data, eff = case("backlash", 3)
-    diag = diagnose(data, nominal, log=_quiet)
+    diag = diagnose(nominal, data, log=_quiet)
     st = diag.setup
-    folds = _folds(len(data), 5, 0)
+    folds = make_folds(len(data), 5, 0)
     for cal in (diag.base, diag.final):
         free = st.free_mask([])  # rebuild the model's mask from its fitted names
         free = np.array([1.0 if n in cal.names else 0.0 for n in st.names])
         sq, count = 0.0, 0
         for rows in folds:
-            refit = fit(st, free, np.setdiff1d(np.arange(len(data)), rows))
-            r = np.asarray(_residual_jit(refit.theta, (st.problem, st.layout))).reshape(-1, 6)
+            keep = np.setdiff1d(np.arange(len(data)), rows)
+            refit = fit(st, free, keep, noise="fixed", weight=cal.weight)  # the fit's σ
+            r = np.asarray(residual_jit(refit.theta, (st.problem, st.layout))).reshape(-1, 6)
             sq += float((r[rows] ** 2).sum())
             count += r[rows].size
         np.testing.assert_allclose(heldout_rms(cal, folds, st.mask), np.sqrt(sq / count), rtol=1e-4)
@@ -222,7 +223,7 @@ def example_data():
         plan_random(N, 2014),
         tracker6(),
         effects=eff,
-        compensate=False,
+        compensated=False,
         frame=[1200.0, -300.0, 150.0, np.deg2rad(0.5), np.deg2rad(-0.3), np.deg2rad(30.0)],
         temperature=temperature,
         seed=2014,

@@ -64,7 +64,7 @@ def _forward_check(table, effects, ctx, extra_fn, seed=0):
     """Command poses with the rigid IK, solve FK with the effect, and check the defining
     equation |l(q)| = L0 + s + extra(q, s) with extra computed by `extra_fn` here."""
     poses = random_poses(20, seed=seed)
-    cmd = np.asarray(jt.actuator_command(table, poses, compensate=False))
+    cmd = np.asarray(jt.actuator_command(table, poses, compensated=False))
     q = np.asarray(jt.forward(table, cmd, effects=effects, guess=poses, context=ctx))
     s = cmd - np.asarray(table.zero_lengths)
     for i in range(len(poses)):

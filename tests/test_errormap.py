@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 import jaxtable as jt
-from jaxtable._errormap import PoseList, error_map, workspace_slice
-from jaxtable._sensitivity import pose_sensitivity
-from jaxtable._tolerance import PARAMETER, SOURCES, Tolerances, budget_effects
+from jaxtable._analysis.errormap import PoseList, error_map, workspace_slice
+from jaxtable._analysis.sensitivities import pose_sensitivity
+from jaxtable._analysis.tolerances import PARAMETER, SOURCES, Tolerances, budget_effects
 from jaxtable.cli import main
 
 
@@ -83,7 +83,7 @@ def test_reachable_cond_and_bias_against_independent_truth(table):
         J[:, 3:] /= r
         assert emap.cond[k] == pytest.approx(np.linalg.cond(J), rel=1e-5)
     # spiral bias: linearised; exact forward kinematics of the uncompensated command
-    exact = np.asarray(jt.forward(table, jt.actuator_command(table, poses[:1], compensate=False)))
+    exact = np.asarray(jt.forward(table, jt.actuator_command(table, poses[:1], compensated=False)))
     err = exact[0] - poses[0]
     np.testing.assert_allclose(emap.bias[0, :3], err[:3], atol=0.02 * np.abs(err[:3]).max())
 

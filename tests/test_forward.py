@@ -25,13 +25,13 @@ def poses():
 
 
 def test_round_trip_rigid(table, poses):
-    cmd = jt.actuator_command(table, poses, compensate=False)
+    cmd = jt.actuator_command(table, poses, compensated=False)
     np.testing.assert_array_equal(np.asarray(cmd), np.asarray(jt.leg_lengths(table, poses)))
     assert_pose_close(jt.forward(table, cmd, effects={}), poses)
 
 
 def test_round_trip_with_spiral(table, poses):
-    cmd = jt.actuator_command(table, poses, compensate=True)
+    cmd = jt.actuator_command(table, poses, compensated=True)
     # the command differs from the rigid one by exactly the passive extension
     np.testing.assert_allclose(
         np.asarray(cmd),
@@ -44,9 +44,9 @@ def test_round_trip_with_spiral(table, poses):
 def test_compensation_lands_on_pose_and_uncompensated_does_not(table):
     line = np.zeros((17, 6))
     line[:, 0] = np.linspace(-200, 200, 17)
-    comp = jt.forward(table, jt.actuator_command(table, line, compensate=True))
+    comp = jt.forward(table, jt.actuator_command(table, line, compensated=True))
     assert_pose_close(comp, line)
-    raw = np.asarray(jt.forward(table, jt.actuator_command(table, line, compensate=False)))
+    raw = np.asarray(jt.forward(table, jt.actuator_command(table, line, compensated=False)))
     err = raw - line
     assert np.abs(err[:, :3]).max() > 0.05  # the passive term moves the platform (mm)
     # first order, the error is the paper's eq. (21): Δq = J⁻¹ Δl2 (Euler increments)
@@ -108,7 +108,7 @@ def test_forward_gradient_matches_finite_differences(table):
 def test_forward_gradient_wrt_table_parameters(table):
     """d pose / d lead through the solve (implicit diff) = finite differences."""
     pose = np.array([-150.0, 40.0, 10.0, 0.05, -0.03, 0.08])
-    cmd = jt.actuator_command(table, pose, compensate=False)
+    cmd = jt.actuator_command(table, pose, compensated=False)
 
     def f(lead):
         t = jt.replace(table, lead=lead)
@@ -201,7 +201,7 @@ def test_float64_is_on():
 def test_reverse_mode_through_forward(table):
     """jax.grad (reverse mode) through the solve = forward-mode jacobian."""
     pose = np.array([-150.0, 40.0, 10.0, 0.05, -0.03, 0.08])
-    cmd = jt.actuator_command(table, pose, compensate=False)
+    cmd = jt.actuator_command(table, pose, compensated=False)
 
     def f(lead):
         return jnp.sum(jt.forward(jt.replace(table, lead=lead), cmd) * jnp.arange(1.0, 7.0))

@@ -250,3 +250,34 @@ def test_paper_form_gradient_at_home_is_infinite_model_is_finite():
     g_model = np.asarray(jax.jacfwd(lambda q: kin.rod_rotation(t, q))(jnp.zeros(6)))
     assert not np.all(np.isfinite(g_paper))
     assert np.all(np.isfinite(g_model)) and np.abs(g_model).max() > 1e-4
+
+
+def test_leg_lines_are_the_rows_of_the_rigid_jacobian(table):
+    """[u_i, R a_i × u_i] = ∂L_i/∂(t, ω): central differences of the leg lengths under a small
+    translation t and a small rotation ω applied in the base frame."""
+    pose = jnp.asarray(random_poses(1, seed=4)[0])
+    u, moment = (np.asarray(x) for x in kin.leg_lines(table, pose))
+    np.testing.assert_allclose(np.linalg.norm(u, axis=1), 1.0, atol=1e-14)
+    R = np.asarray(jt.rotation_matrix(pose[3:]))
+    h = 1e-5
+
+    def lengths(dt, w):
+        # the platform moved by dt and turned by the small rotation w about its origin
+        Rn = (np.eye(3) + np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])) @ R
+        t = np.asarray(pose[:3]) + np.array([0, 0, float(table.home_height)]) + dt
+        a = np.asarray(table.platform_joints) @ Rn.T
+        return np.linalg.norm(t + a - np.asarray(table.base_joints), axis=1)
+
+    for k in range(3):
+        e = np.eye(3)[k] * h
+        zero = np.zeros(3)
+        dt = (lengths(e, zero) - lengths(-e, zero)) / (2 * h)
+        dw = (lengths(zero, e) - lengths(zero, -e)) / (2 * h)
+        np.testing.assert_allclose(dt, u[:, k], atol=1e-8)
+        np.testing.assert_allclose(dw, moment[:, k], atol=1e-5)
+
+
+def test_in_stroke_is_inclusive_and_elementwise(table):
+    lo, hi = (float(v) for v in np.asarray(table.stroke))
+    L = np.array([[lo, hi, lo - 1e-9, hi + 1e-9, 0.5 * (lo + hi), np.nan]])
+    assert np.asarray(kin.in_stroke(table, L)).tolist() == [[True, True, False, False, True, False]]

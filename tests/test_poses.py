@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 import jaxtable as jt
-from jaxtable._calibrate import calibrate
-from jaxtable._instrument import tracker6
-from jaxtable._poses import compare_with_random, evaluate_design, pose_jacobians, select
-from jaxtable._simulate import perturb_table, plan_random, simulate
+from jaxtable._calibration.fit import calibrate
+from jaxtable._calibration.instruments import tracker6
+from jaxtable._calibration.poses import compare_with_random, evaluate_design, pose_jacobians, select
+from jaxtable._calibration.simulate import perturb_table, plan_random, simulate
 
 K = 14
 N_CANDIDATES = 200

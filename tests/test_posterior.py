@@ -11,16 +11,11 @@ import numpy as np
 import pytest
 
 import jaxtable as jt
-from jaxtable._calibrate import fit, setup
-from jaxtable._instrument import tracker6
-from jaxtable._posterior import (
-    SnookerMove,
-    corner_plot,
-    plot_bands,
-    posterior,
-    predictive_bands,
-)
-from jaxtable._simulate import perturb_table, plan_random, plan_x_line, simulate
+from jaxtable._calibration.fit import fit, setup
+from jaxtable._calibration.instruments import tracker6
+from jaxtable._calibration.posterior import SnookerMove, posterior, predictive_bands
+from jaxtable._calibration.simulate import perturb_table, plan_random, plan_x_line, simulate
+from jaxtable._reports.posterior import corner_plot, plot_bands
 
 N_POSES = 40
 
@@ -115,13 +110,14 @@ def test_corner_plot_and_predictive_bands(case, chain, tmp_path):
     plot_bands(bands, tmp_path / "bands.png")
     assert (tmp_path / "bands.png").stat().st_size > 10_000
     assert bands.bands.shape == (3, len(poses), 6) and bands.failed == 0
-    # the LM prediction, recomputed with the public forward kinematics
+    # the LM prediction (pose error: translation, rotation vector), recomputed with the
+    # public forward kinematics
     cmd = jt.actuator_command(table, poses)
-    lm = np.asarray(jt.forward(cal.table, cmd, nominal=table, guess=poses)) - poses
+    lm = np.asarray(jt.pose_error(jt.forward(cal.table, cmd, nominal=table, guess=poses), poses))
     np.testing.assert_allclose(bands.lm, lm, atol=1e-9)
     assert np.all((bands.bands[0] <= lm) & (lm <= bands.bands[-1]))
     # the true pose error lies within the bands' spread of the median
-    true_err = np.asarray(jt.forward(true, cmd, nominal=table, guess=poses)) - poses
+    true_err = np.asarray(jt.pose_error(jt.forward(true, cmd, nominal=table, guess=poses), poses))
     half = (bands.bands[-1] - bands.bands[0]) / 2
     assert np.all(np.abs(true_err - bands.bands[1]) < 2.5 * half)
     # the bands are not degenerate: L0 errors of ~50 µm are known to a few µm

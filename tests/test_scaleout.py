@@ -56,8 +56,8 @@ def single(tmp_path_factory):
 def _same(a, b):
     for k in KEYS:
         np.testing.assert_allclose(b[k], a[k], rtol=0, atol=1e-9, err_msg=k)
-    np.testing.assert_array_equal(b["fk_code"], a["fk_code"])
-    assert np.all(a["fk_code"] == 0)
+    np.testing.assert_array_equal(b["fk_ok"], a["fk_ok"])
+    assert np.all(a["fk_ok"])
 
 
 def test_two_simulated_cpu_devices_equal_one(single, tmp_path):

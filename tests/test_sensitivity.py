@@ -8,14 +8,14 @@ import pytest
 from conftest import random_poses
 
 import jaxtable as jt
-from jaxtable._sensitivity import (
+from jaxtable._analysis.sensitivities import (
     GEOMETRY_42,
     jacobians_one,
     paper_error_jacobian,
     per_leg_jacobians_one,
     pose_sensitivity,
 )
-from jaxtable._tolerance import budget_effects
+from jaxtable._analysis.tolerances import budget_effects
 
 
 @pytest.fixture(scope="module")

@@ -4,9 +4,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxtable._errormap import budget_one
-from jaxtable._montecarlo import monte_carlo
-from jaxtable._tolerance import (
+from jaxtable._analysis.errormap import budget_one
+from jaxtable._analysis.montecarlo import monte_carlo
+from jaxtable._analysis.tolerances import (
     SOURCES,
     ToleranceFileError,
     Tolerances,
@@ -74,7 +74,7 @@ def test_linear_matches_monte_carlo_at_paper_tolerances(table):
     poses = np.array(
         [[0.0] * 6, [-200.0, 0, 0, 0, 0, 0], [100.0, -100.0, -50.0, -0.13, -0.13, 0.17]]
     )
-    err = monte_carlo(table, poses, Tolerances(), 2000, seed=3)
+    err = monte_carlo(table, Tolerances(), poses, 2000, seed=3)
     lin = np.stack(
         [np.asarray(budget_one(table, sigmas(Tolerances()), jnp.asarray(p))[0][-1]) for p in poses]
     )
@@ -91,17 +91,17 @@ def test_linear_breaks_down_near_the_singular_low_pose(table):
     std, _, cond, _ = budget_one(table, sigmas(Tolerances()), jnp.asarray(pose[0]))
     lin_z = float(std[-1][2])
     assert float(cond) > 40
-    err = monte_carlo(table, pose, Tolerances(), 4000, seed=1)[:, 0, 2]
+    err = monte_carlo(table, Tolerances(), pose, 4000, seed=1)[:, 0, 2]
     assert err.mean() < -0.1 * lin_z  # ≈ 10 standard errors off the linear zero mean
     assert np.sqrt((err**2).mean()) > 1.04 * lin_z
     lower = monte_carlo(
         table,
-        np.array([[0.0, 0, -655.0, 0, 0, 0]]),
         Tolerances(),
+        np.array([[0.0, 0, -655.0, 0, 0, 0]]),
         4000,
         seed=1,
         allow_failures=True,
     )
     assert np.isnan(lower[:, 0, 0]).mean() > 0.01
     with pytest.raises(RuntimeError, match="Monte Carlo solves failed"):
-        monte_carlo(table, np.array([[0.0, 0, -655.0, 0, 0, 0]]), Tolerances(), 4000, seed=1)
+        monte_carlo(table, Tolerances(), np.array([[0.0, 0, -655.0, 0, 0, 0]]), 4000, seed=1)

@@ -5,20 +5,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ._diagnose import SIGNATURE_OF, Diagnosis, leg_residuals, signatures
-from ._effects import EFFECTS
-from ._map_report import _plt
-
-UNITS = {
-    "lead": "mm/rev",
-    "eps": "",
-    "w": "mm",
-    "a": "mm",
-    "b": "mm",
-    "alpha": "1/K",
-    "flex": "mm/N",
-    "offsets": "mm",
-}
+from .. import _params as vocab
+from .._calibration.model_file import save_fitted_model
+from .._discovery.diagnose import SIGNATURE_OF, Diagnosis, leg_residuals, signatures
+from .._effects import EFFECTS
+from .figures import pyplot
 
 
 def _binned(x, y, bins=12):
@@ -46,7 +37,7 @@ def signature_figure(diag: Diagnosis, path: Path) -> Path | None:
         return _column_figure(diag, path)
     sig = signatures(diag)
     names = [k for k in sig if k != "row"]
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(2, 4, figsize=(15, 6.5))
     for ax, name in zip(axes.ravel(), names + ["row"]):
         x = sig[name]
@@ -75,7 +66,7 @@ def _column_figure(diag: Diagnosis, path: Path) -> Path:
     cmd = diag.data.cmd_pose
     k = int(np.argmax(np.ptp(cmd, axis=0)))
     cols = np.flatnonzero(mask.any(0))
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(len(cols), 2, figsize=(10, 2.8 * len(cols)), squeeze=False)
     for r, c in enumerate(cols):
         unit, f = ("mm", 1.0) if c < 3 else ("arcsec", 206264.806)
@@ -101,7 +92,7 @@ def effect_figures(diag: Diagnosis, out: Path) -> list[Path]:
     after = leg_residuals(diag, diag.final)
     if after is None:
         return paths
-    plt = _plt()
+    plt = pyplot()
     for step in diag.steps:
         if step.added is None:
             continue
@@ -132,7 +123,7 @@ def effect_figures(diag: Diagnosis, out: Path) -> list[Path]:
 def _fmt_params(params: dict) -> str:
     parts = []
     for f, (v, s) in params.items():
-        unit = UNITS.get(f, "")
+        unit = vocab.UNITS.get(f, "")
         vals = ", ".join(
             f"{a:.3g}±{b:.2g}" if np.isfinite(b) else f"{a:.3g}±inf" for a, b in zip(v, s)
         )
@@ -151,9 +142,16 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         "",
         f"**Selected effects:** {', '.join(diag.selected) if diag.selected else 'none'}. "
         f"**Unexplained structure:** {'yes' if diag.unexplained else 'no'} "
-        f"(χ² test at false-alarm rate {diag.alpha:g}).",
+        + (
+            f"(χ² test against the stated σ at false-alarm rate {diag.alpha:g})."
+            if diag.noise_mode == "fixed"
+            else "(not tested: no stated σ; σ was estimated for each model, and only the "
+            "candidates' ΔBIC tests decided)."
+        ),
         "",
-        "| | fit RMS (σ units) | held-out RMS (σ units, k-fold) |",
+        *[f"- {line}" for line in (diag.final.noise.lines() if diag.final.noise else [])],
+        "",
+        "| | fit RMS (units of the final model's σ) | held-out RMS (same units, k-fold) |",
         "|---|---|---|",
         f"| geometric model | {diag.rms_before:.3f} | {diag.heldout_rms_before:.3f} |",
         f"| final model | {diag.rms_after:.3f} | {diag.heldout_rms_after:.3f} |",
@@ -221,8 +219,14 @@ def write_report(diag: Diagnosis, out: Path, source: str, json_path: Path | None
     figures += effect_figures(diag, out)
     figures = [p for p in figures if p is not None]
     (out / "report.md").write_text(markdown(diag, figures, source))
+    model_path = save_fitted_model(
+        diag.fitted_model(),
+        out / "calibrated_table.toml",
+        header=f"Final model of `jaxtable diagnose` on {source}: geometry + "
+        f"{', '.join(diag.model_effects) or 'no effect'}",
+    )
     if json_path is not None:
         json_path = Path(json_path)
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(_finite(diag.as_json()), indent=2, allow_nan=False))
-    return [out / "report.md"] + figures
+    return [out / "report.md", model_path] + figures

@@ -4,7 +4,7 @@ The sampled density is the likelihood of the fit, through the exact forward kine
 
     log p(θ | data) = −½ Σ r(θ)² + log prior(θ)
 
-with r the weighted residuals (reading − measured) / σ of `_calibrate._residual`, over the
+with r the weighted residuals (reading − measured) / σ of `_calibrate.residual`, over the
 parameters the Levenberg-Marquardt fit estimated (table leaves, effect fields, instrument
 frames and target). Frozen parameters stay at their fitted values.
 
@@ -35,22 +35,19 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ._api import actuator_command
-from ._calibrate import Calibration, Setup, _build, _residual
-from ._forward import ForwardOptions, forward_one
+from .._api import actuator_command
+from .._errors import renamed_argument
+from .._forward import RESULTS, ForwardOptions, forward_one
+from .._rotation import pose_error
+from .fit import Calibration, Setup, build_model, residual
 
 __all__ = [
     "PosteriorResult",
     "PredictiveBands",
     "SnookerMove",
-    "corner_plot",
-    "plot_bands",
     "posterior",
     "predictive_bands",
 ]
-
-POSE_COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
-ARCSEC_PER_RAD = 180 * 3600 / np.pi
 
 
 class SnookerMove(emcee.moves.DESnookerMove):
@@ -90,7 +87,8 @@ class SnookerMove(emcee.moves.DESnookerMove):
 class PosteriorResult:
     """Outcome of `posterior`.
 
-    - `names` (P,): the fitted parameters, as `Calibration.names`;
+    - `names` (P,): the fitted parameters, as `Calibration.names` (keys); `labels` (P,):
+      their physical names, as `Calibration.labels`;
     - `samples` (S, P): posterior draws after burn-in and thinning, all walkers pooled, in
       parameter units (mm, rad, mm/rev, ... as `Calibration.value`); `log_prob` (S,);
     - `mean`, `std` (P,): of the samples (std = inf where the parameter takes part in an
@@ -125,6 +123,7 @@ class PosteriorResult:
     theta_lm: dict = field(repr=False)
     index: np.ndarray = field(repr=False)
     whitening: np.ndarray = field(repr=False)
+    labels: list = field(default_factory=list)
 
     def summary(self) -> str:
         """A markdown table: parameter, LM value ± std, posterior mean ± std, std ratio."""
@@ -137,7 +136,7 @@ class PosteriorResult:
             "| parameter | LM value | LM std | posterior mean | posterior std | ratio |",
             "|---|---|---|---|---|---|",
         ]
-        for k, n in enumerate(self.names):
+        for k, n in enumerate(self.labels or self.names):
             ratio = self.std[k] / self.lm_std[k] if np.isfinite(self.lm_std[k]) else np.nan
             lines.append(
                 f"| {n} | {self.lm_value[k]:.6g} | {self.lm_std[k]:.3g} | {self.mean[k]:.6g} "
@@ -172,7 +171,7 @@ def _log_prob_batch(z, problem, layout, template, center, L, inv_prior_var):
 
     def one(zi):
         theta = unravel(center + L @ zi)
-        r = _residual(theta, (problem, layout))
+        r = residual(theta, (problem, layout))
         lp = -0.5 * jnp.sum(r**2) - 0.5 * inv_prior_var * jnp.sum(zi**2)
         return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
 
@@ -241,6 +240,8 @@ def posterior(
         raise ValueError(f"n_walkers must be even and >= 2 r + 2 = {2 * r + 2}, got {n_walkers}")
 
     problem = st.problem
+    if cal.weight is not None:  # the fit's weights: the σ it used (stated or estimated)
+        problem = eqx.tree_at(lambda p: p.weight, problem, jnp.asarray(cal.weight))
     if rows is not None:
         use = np.zeros(len(st.mask), bool)
         use[np.asarray(rows)] = True
@@ -301,6 +302,7 @@ def posterior(
     std = np.where(ident, samples.std(0, ddof=1), np.inf)
     return PosteriorResult(
         names=list(cal.names),
+        labels=list(cal.labels or cal.names),
         samples=samples,
         log_prob=lp,
         mean=mean,
@@ -326,82 +328,14 @@ def posterior(
 # --- plots ----------------------------------------------------------------------------------
 
 
-def _pick(result: PosteriorResult, max_params: int, params) -> list[int]:
-    names = result.names
-    if params is not None:
-        bad = [p for p in params if p not in names]
-        if bad:
-            raise ValueError(f"unknown parameter(s) {bad}; known: {names}")
-        return [names.index(p) for p in params]
-    if len(names) <= max_params:
-        return list(range(len(names)))
-    x = result.samples
-    sd = x.std(0)
-    ok = sd > 0
-    c = np.zeros((len(names), len(names)))
-    c[np.ix_(ok, ok)] = np.corrcoef(x[:, ok].T)
-    np.fill_diagonal(c, 0.0)
-    score = np.abs(c).max(1)
-    return sorted(np.argsort(-score, kind="stable")[:max_params].tolist())
-
-
-def corner_plot(result: PosteriorResult, path, max_params: int = 8, params=None, dpi: int = 80):
-    """Write a corner plot (PNG) of the posterior samples: histograms on the diagonal, with
-    the LM Gaussian N(value, std²) drawn over them, 2-D histograms below. Shows `params`
-    (names) or, when there are more than `max_params` parameters, the `max_params` most
-    correlated ones (largest |correlation| with another parameter). Returns the names shown.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    idx = _pick(result, max_params, params)
-    k = len(idx)
-    x = result.samples[:, idx]
-    size = max(4.0, 1.5 * k)
-    fig, axes = plt.subplots(k, k, figsize=(size, size), squeeze=False)
-    for i in range(k):
-        for j in range(k):
-            ax = axes[i, j]
-            if j > i:
-                ax.set_axis_off()
-                continue
-            if i == j:
-                ax.hist(x[:, i], bins=30, density=True, color="0.6")
-                m, s = result.lm_value[idx[i]], result.lm_std[idx[i]]
-                if np.isfinite(s) and s > 0:
-                    g = np.linspace(x[:, i].min(), x[:, i].max(), 100)
-                    ax.plot(g, np.exp(-0.5 * ((g - m) / s) ** 2) / (s * np.sqrt(2 * np.pi)), "r")
-                ax.set_yticks([])
-            else:
-                ax.hist2d(x[:, j], x[:, i], bins=30, cmap="Greys")
-            if i == k - 1:
-                ax.set_xlabel(result.names[idx[j]], fontsize=7)
-            else:
-                ax.set_xticklabels([])
-            if j == 0 and i > 0:
-                ax.set_ylabel(result.names[idx[i]], fontsize=7)
-            elif j > 0:
-                ax.set_yticklabels([])
-            ax.tick_params(labelsize=6)
-    fig.suptitle("posterior (grey) and LM Gaussian (red)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return [result.names[i] for i in idx]
-
-
-# --- posterior predictive pose error ------------------------------------------------------
-
-
 @dataclass(frozen=True)
 class PredictiveBands:
     """Posterior-predictive pose error over commanded poses.
 
     - `poses` (Q, 6): commanded poses (mm, rad); `percentiles` (B,) in %;
     - `bands` (B, Q, 6): percentiles over the posterior samples of the pose error
-      (pose reached − pose commanded), mm / rad;
+      (`pose_error` of the pose reached against the pose commanded: translation mm,
+      rotation vector rad);
     - `lm` (Q, 6): the pose error predicted by the LM fit; `samples` (S, Q, 6): the errors of
       the drawn sample tables; `failed`: number of (sample, pose) solves that did not
       converge (their errors are NaN and left out of the percentiles).
@@ -417,15 +351,16 @@ class PredictiveBands:
 
 @eqx.filter_jit
 def _pose_errors(thetas, problem, layout, s, poses, options):
-    """Pose error (S, Q, 6) and codes (S, Q) of S parameter pytrees (leading axis) at the
-    actuator extensions s (Q, 6) the controller gives for `poses` (Q, 6)."""
+    """Pose errors (S, Q, 6) (`pose_error`: translation mm, rotation vector rad) and
+    success flags (S, Q) of S parameter pytrees (leading axis) at the actuator extensions
+    s (Q, 6) the controller gives for `poses` (Q, 6)."""
 
     def per_sample(theta):
-        table, effects, _, _ = _build(problem, layout, theta)
+        table, effects, _, _ = build_model(problem, layout, theta)
 
         def per_pose(si, qi):
-            q, code, _, _ = forward_one(table, effects, si, qi, options)
-            return q - qi, code
+            q, result, _, _ = forward_one(table, effects, si, qi, options)
+            return pose_error(q, qi), result == RESULTS.successful
 
         return jax.vmap(per_pose)(s, poses)
 
@@ -439,18 +374,19 @@ def predictive_bands(
     *,
     n_samples: int = 200,
     percentiles=(2.5, 50.0, 97.5),
-    compensate: bool = True,
+    compensated: bool = True,
+    compensate: bool | None = None,
     seed: int = 0,
     options: ForwardOptions = ForwardOptions(),
 ) -> PredictiveBands:
     """Posterior-predictive pose error at commanded `poses` (Q, 6), mm / rad.
 
     The controller believes the nominal table of `st` and commands its inverse kinematics
-    (`actuator_command(nominal, poses, compensate)`); each of `n_samples` posterior draws
+    (`actuator_command(nominal, poses, compensated)`); each of `n_samples` posterior draws
     (with the fitted effects, home context: direction +1, 20 °C, no payload) settles at the
-    exact forward-kinematics pose for those commands; its error is that pose minus the
-    commanded one. Returns percentile bands per pose and column, and the LM prediction.
-    Joint sets fitted modulo rigid motions (the gauge) are compared in that gauge.
+    exact forward-kinematics pose for those commands; its error is the `pose_error` of that
+    pose against the commanded one. Returns percentile bands per pose and column, and the
+    LM prediction. Joint sets fitted modulo rigid motions (the gauge) are compared in that gauge.
     """
     poses = np.asarray(poses, float)
     if poses.ndim != 2 or poses.shape[1] != 6 or not np.isfinite(poses).all():
@@ -459,7 +395,10 @@ def predictive_bands(
     if np.any((pct < 0) | (pct > 100)):
         raise ValueError(f"percentiles must lie in [0, 100], got {pct}")
     nominal = st.problem.nominal
-    cmd = np.asarray(actuator_command(nominal, poses, compensate))
+    compensated = renamed_argument(
+        compensated, compensate, "compensate", "compensated", "predictive_bands"
+    )
+    cmd = np.asarray(actuator_command(nominal, poses, compensated))
     s = jnp.asarray(cmd - np.asarray(nominal.zero_lengths))
     flat_lm, unravel = ravel_pytree(result.theta_lm)
     rng = np.random.default_rng(seed)
@@ -467,53 +406,13 @@ def predictive_bands(
     flats = np.tile(np.asarray(flat_lm), (len(pick) + 1, 1))
     flats[1:, result.index] = result.samples[pick]
     thetas = jax.vmap(unravel)(jnp.asarray(flats))
-    err, code = _pose_errors(thetas, st.problem, st.layout, s, jnp.asarray(poses), options)
-    err, code = np.asarray(err), np.asarray(code)
-    if code[0].any():
+    err, ok = _pose_errors(thetas, st.problem, st.layout, s, jnp.asarray(poses), options)
+    err, ok = np.asarray(err), np.asarray(ok)
+    if not ok[0].all():
         raise RuntimeError(
             "forward kinematics of the LM table failed at pose(s) "
-            f"{(np.flatnonzero(code[0]) + 1).tolist()[:10]}"
+            f"{(np.flatnonzero(~ok[0]) + 1).tolist()[:10]}"
         )
-    samp = np.where((code[1:] == 0)[..., None], err[1:], np.nan)
+    samp = np.where(ok[1:, :, None], err[1:], np.nan)
     bands = np.nanpercentile(samp, pct, axis=0)
-    return PredictiveBands(poses, pct, bands, err[0], samp, int((code[1:] != 0).sum()))
-
-
-def plot_bands(bands: PredictiveBands, path, columns=None, axis: int | None = None, dpi=80):
-    """Write a PNG of the predictive bands: one panel per pose column (µm for x, y, z; arcsec
-    for angles), the outer percentiles shaded, the median dashed and the LM prediction solid,
-    against the commanded coordinate `axis` (default: the pose column that varies most over
-    the poses, in mm or deg)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    cols = list(range(6)) if columns is None else [POSE_COLUMNS.index(c) for c in columns]
-    p = bands.poses
-    if axis is None:
-        spread = np.ptp(p, axis=0) * np.array([1, 1, 1, 1e3, 1e3, 1e3])
-        axis = int(np.argmax(spread))
-    xs = p[:, axis] * (1.0 if axis < 3 else 180 / np.pi)
-    order = np.argsort(xs)
-    xs = xs[order]
-    unit = np.array([1e3] * 3 + [ARCSEC_PER_RAD] * 3)
-    fig, axes = plt.subplots(len(cols), 1, figsize=(6, 1.6 * len(cols) + 0.6), sharex=True)
-    axes = np.atleast_1d(axes)
-    mid = len(bands.percentiles) // 2
-    for ax, c in zip(axes, cols):
-        b = bands.bands[:, order, c] * unit[c]
-        ax.fill_between(xs, b[0], b[-1], color="C0", alpha=0.3, lw=0)
-        ax.plot(xs, b[mid], "C0--", lw=1)
-        ax.plot(xs, bands.lm[order, c] * unit[c], "k-", lw=1)
-        ax.set_ylabel(f"{POSE_COLUMNS[c]} ({'µm' if c < 3 else 'arcsec'})", fontsize=8)
-        ax.tick_params(labelsize=7)
-    lo, hi = bands.percentiles[0], bands.percentiles[-1]
-    axes[0].set_title(
-        f"pose error: posterior {lo:g}–{hi:g} % band (shaded), median (dashed), LM (solid)",
-        fontsize=8,
-    )
-    axes[-1].set_xlabel(f"commanded {POSE_COLUMNS[axis]} ({'mm' if axis < 3 else 'deg'})")
-    fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    return PredictiveBands(poses, pct, bands, err[0], samp, int((~ok[1:]).sum()))

@@ -8,18 +8,27 @@ from pathlib import Path
 
 import numpy as np
 
-from ._api import actuator_command, forward, reachable, rod_rotation, spiral_extension
-from ._errors import POSE_COLUMNS
-from ._rotation import ARCSEC_PER_RAD
-from ._table import Table
-from ._workspace import Workspace
+from .._analysis.workspaces import Workspace
+from .._api import (
+    actuator_command,
+    forward,
+    pose_error,
+    reachable,
+    rod_rotation,
+    spiral_extension,
+)
+from .._errors import POSE_COLUMNS
+from .._rotation import ARCSEC_PER_RAD
+from .._table import Table
+from .figures import pyplot
 
 
 def _pose_error(table: Table, poses: np.ndarray, compensate: bool) -> np.ndarray:
-    """Actual − desired pose (mm, rad) when the controller commands with/without compensation
-    and the hardware has its passive term (exact forward kinematics, spiral inside)."""
-    cmd = actuator_command(table, poses, compensate=compensate)
-    return np.asarray(forward(table, cmd)) - poses
+    """`pose_error` of the actual pose against the desired one (translation mm, rotation
+    vector rad) when the controller commands with/without compensation and the hardware has
+    its passive term (exact forward kinematics, spiral inside)."""
+    cmd = actuator_command(table, poses, compensated=compensate)
+    return np.asarray(pose_error(forward(table, cmd), poses))
 
 
 def _norms(err: np.ndarray):
@@ -153,10 +162,7 @@ def markdown(table: Table, a: dict, workspace: Workspace) -> str:
 
 
 def figures(table: Table, a: dict, out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     xs = a["xs"]
     paths = []
@@ -191,7 +197,7 @@ def figures(table: Table, a: dict, out: Path) -> list[Path]:
     raw, comp = a["line_err_raw"], a["line_err_comp"]
     for c in range(3):
         a1.plot(xs, raw[:, c], label=f"{POSE_COLUMNS[c]}")
-        a2.plot(xs, raw[:, c + 3] * ARCSEC_PER_RAD, label=f"{POSE_COLUMNS[c + 3]}")
+        a2.plot(xs, raw[:, c + 3] * ARCSEC_PER_RAD, label=f"about {POSE_COLUMNS[c]}")
     a1.plot(xs, np.linalg.norm(comp[:, :3], axis=1), "k:", label="|error|, compensated")
     a2.plot(
         xs, np.linalg.norm(comp[:, 3:], axis=1) * ARCSEC_PER_RAD, "k:", label="|error|, compensated"

@@ -17,18 +17,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from ._rotation import ARCSEC_PER_RAD, rotation_matrix
-
-
-def euler_zyx(R):
-    """(roll, pitch, yaw) of R = Rz(yaw) Ry(pitch) Rx(roll), rad."""
-    return jnp.stack(
-        [
-            jnp.arctan2(R[2, 1], R[2, 2]),
-            -jnp.arcsin(jnp.clip(R[2, 0], -1.0, 1.0)),
-            jnp.arctan2(R[1, 0], R[0, 0]),
-        ]
-    )
+from .._rotation import ARCSEC_PER_RAD, euler_from_matrix, rotation_matrix
 
 
 def observe(pose, frame, target):
@@ -36,7 +25,7 @@ def observe(pose, frame, target):
     R = rotation_matrix(pose[3:])
     RF = rotation_matrix(frame[3:])
     pos = RF @ (pose[:3] + R @ target[:3]) + frame[:3]
-    ang = euler_zyx(RF @ R @ rotation_matrix(target[3:]))
+    ang = euler_from_matrix(RF @ R @ rotation_matrix(target[3:]))
     return jnp.concatenate([pos, ang])
 
 

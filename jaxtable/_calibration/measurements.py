@@ -3,7 +3,8 @@
 Schema (DESIGN.md): `cmd_x … cmd_yaw` commanded pose (mm / deg, required); `cmd_l1 … cmd_l6`
 commanded joint-to-joint lengths (optional); `x, y, z, roll, pitch, yaw` measured pose (any
 subset; empty or NaN = not measured); `sigma_<column>` per-row standard deviation (optional);
-`temperature` (°C), `payload` (kg), `session` (label) optional. Unknown columns are kept and
+`temperature` (°C), `payload` (kg), `session` (label) optional; a blank session cell
+continues the session of the row before it. Unknown columns are kept and
 written back unchanged. Angles are degrees in the file and radians in memory.
 """
 
@@ -14,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._errors import POSE_COLUMNS
+from .._errors import POSE_COLUMNS
+from .._params import pose_from_file, pose_to_file
 
 CMD = tuple(f"cmd_{c}" for c in POSE_COLUMNS)
 CMD_L = tuple(f"cmd_l{i}" for i in range(1, 7))
@@ -25,18 +27,6 @@ OPTIONAL = ("temperature", "payload")
 
 class DataFileError(ValueError):
     """A measurement file is malformed; the message names the row and column."""
-
-
-def _to_internal(a: np.ndarray) -> np.ndarray:
-    out = np.array(a, dtype=float)
-    out[..., 3:] = np.deg2rad(out[..., 3:])
-    return out
-
-
-def _to_file(a: np.ndarray) -> np.ndarray:
-    out = np.array(a, dtype=float)
-    out[..., 3:] = np.rad2deg(out[..., 3:])
-    return out
 
 
 @dataclass
@@ -88,7 +78,7 @@ class Measurements:
     def direction(self) -> np.ndarray:
         """(N, 6) ±1: +1 if the leg last moved out (extending), −1 if in, from the row order
         of the commanded lengths (first row +1; a leg that did not move keeps its sign)."""
-        from ._context import directions
+        from .._context import directions
 
         if self.cmd_lengths is None:
             raise ValueError("direction needs the commanded lengths (cmd_l1..6)")
@@ -127,6 +117,20 @@ def _cell(value: str, row: int, col: str, path, required: bool) -> float:
     if not math.isfinite(x) and required:
         raise DataFileError(f"{path}: row {row}, column '{col}': non-finite value '{value}'")
     return x
+
+
+def _sessions(cells: list[str]) -> np.ndarray:
+    """Session labels with the blank-cell rule: a blank cell continues the session of the
+    row before it (a tracker is set up anew only where a label says so); blank cells before
+    the first label belong to the first labelled session; an all-blank column is one
+    session, "1"."""
+    labels = [c.strip() for c in cells]
+    first = next((c for c in labels if c), "1")
+    out, current = [], first
+    for c in labels:
+        current = c or current
+        out.append(current)
+    return np.array(out)
 
 
 def load_measurements(path) -> Measurements:
@@ -178,22 +182,18 @@ def load_measurements(path) -> Measurements:
             [numeric(c, required) if c in col else np.full(n, np.nan) for c in names], axis=1
         )
 
-    cmd = _to_internal(block(CMD, True))
-    measured = _to_internal(block(MEASURED, False))
+    cmd = pose_from_file(block(CMD, True))
+    measured = pose_from_file(block(MEASURED, False))
     cmd_l = block(CMD_L, True) if lengths else None
     sigma = None
     if any(c in col for c in SIGMA):
-        sigma = _to_internal(block(SIGMA, False))
+        sigma = pose_from_file(block(SIGMA, False))
         neg = np.argwhere(sigma < 0)
         if len(neg):
             r, c = neg[0]
             raise DataFileError(f"{path}: row {r + 1}, column '{SIGMA[c]}': negative σ")
     opt = {c: numeric(c, False) if c in col else None for c in OPTIONAL}
-    session = (
-        np.array([rows[r][col["session"]].strip() or "1" for r in range(n)])
-        if "session" in col
-        else None
-    )
+    session = _sessions([rows[r][col["session"]] for r in range(n)]) if "session" in col else None
     known = set(CMD + CMD_L + MEASURED + SIGMA + OPTIONAL + ("session",))
     extra = {h: np.array([rows[r][col[h]] for r in range(n)]) for h in header if h not in known}
     return Measurements(
@@ -203,16 +203,16 @@ def load_measurements(path) -> Measurements:
 
 def save_measurements(m: Measurements, path) -> None:
     """Write `m` as CSV (DESIGN.md schema; angles in degrees; floats written exactly)."""
-    cols, data = list(CMD), [_to_file(m.cmd_pose)]
+    cols, data = list(CMD), [pose_to_file(m.cmd_pose)]
     if m.cmd_lengths is not None:
         cols += CMD_L
         data.append(m.cmd_lengths)
     meas = [k for k in range(6) if np.any(np.isfinite(m.measured[:, k]))]
     cols += [MEASURED[k] for k in meas]
-    data.append(_to_file(m.measured)[:, meas])
+    data.append(pose_to_file(m.measured)[:, meas])
     if m.sigma is not None:
         cols += [SIGMA[k] for k in meas]
-        data.append(_to_file(m.sigma)[:, meas])
+        data.append(pose_to_file(m.sigma)[:, meas])
     for name in OPTIONAL:
         v = getattr(m, name)
         if v is not None:

@@ -6,13 +6,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._batch import run_batch
-from ._effects import Effects, resolve_effects
-from ._errormap import Grid, PoseList, workspace_slice
-from ._errors import require_x64
-from ._kinematics import spiral_extension, within_limits
-from ._model import inverse_extension
-from ._table import Table
+from .._batch import run_batch
+from .._effects import Effects, resolve_effects
+from .._errors import require_x64
+from .._kinematics import spiral_extension, within_limits
+from .._model import inverse_extension
+from .._table import Table
+from .workspaces import Grid, PoseList, workspace_slice
 
 
 def _command_map_row(shared, pose):

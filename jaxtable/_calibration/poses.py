@@ -2,7 +2,7 @@
 the fitted parameters are as well determined as possible (optimal experimental design).
 
 Model. The identification Jacobian of a candidate pose is the Jacobian of the fit's own
-weighted residual (`_calibrate._residual`: exact forward kinematics, the instrument's view in
+weighted residual (`_calibrate.residual`: exact forward kinematics, the instrument's view in
 its frame, residual / σ) with respect to the fitted parameters (table leaves, effect fields,
 and the instrument frame and target as nuisance parameters, joint sets modulo rigid motions
 as in `calibrate`), at the nominal table: rows (m, P) per pose, m = the columns the
@@ -35,12 +35,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ._calibrate import JOINTS, Layout, _residual, make_problem, setup
-from ._data import Measurements
-from ._forward import angle_scale
-from ._instrument import Instrument, observe
-from ._simulate import plan_random
-from ._table import Table
+from .. import _params as params
+from .._forward import platform_radius
+from .._table import Table
+from .fit import Layout, make_problem, residual, setup, zero_steps
+from .instruments import Instrument, observe
+from .measurements import Measurements
+from .simulate import plan_random
 
 __all__ = [
     "DesignQuality",
@@ -57,7 +58,7 @@ __all__ = [
     "select_poses",
 ]
 
-DEFAULT_FREE = ("base_joints", "platform_joints", "zero_lengths")
+DEFAULT_FREE = params.GEOMETRY
 CRITERIA = ("D", "A")
 
 
@@ -104,7 +105,7 @@ class PoseJacobians:
 @eqx.filter_jit
 def _jacobian(problem, layout, theta):
     flat, unravel = ravel_pytree(theta)
-    return jax.jacfwd(lambda f: _residual(unravel(f), (problem, layout)))(flat)
+    return jax.jacfwd(lambda f: residual(unravel(f), (problem, layout)))(flat)
 
 
 def _check_poses(poses, name: str) -> np.ndarray:
@@ -427,15 +428,7 @@ def pose_sensitivities(jac: PoseJacobians, poses) -> np.ndarray:
     data = Measurements(poses, poses.copy(), None, np.ones_like(poses))
     problem = make_problem(jac.nominal, data, jac.effects, jac.bases, jac.compensated)
     layout = Layout(tuple(jac.layout.free), (), (), 1, jac.layout.gauge)
-    theta = {}
-    for name in layout.free:
-        if name in JOINTS:
-            theta[name] = jnp.zeros(jac.bases[name].shape[1])
-        elif "." in name:
-            e, f = name.split(".", 1)
-            theta[name] = jnp.zeros_like(getattr(jac.effects[e], f))
-        else:
-            theta[name] = jnp.zeros_like(getattr(jac.nominal, name))
+    theta = zero_steps(jac.nominal, jac.effects, layout.free, jac.bases)
     S = np.asarray(_jacobian(problem, layout, theta)).reshape(len(poses), 6, -1)
     out = np.zeros((len(poses), 6, len(jac.names)))
     out[:, :, ~jac.nuisance] = S
@@ -503,7 +496,7 @@ def compare_with_random(
     sel = select(jac, k, criterion=criterion) if selection is None else selection
     held = plan_random(200, seed=9_999) if heldout is None else _check_poses(heldout, "heldout")
     S = pose_sensitivities(jac, held)
-    proj = rigid_projector(held, float(angle_scale(jac.nominal)))
+    proj = rigid_projector(held, float(platform_radius(jac.nominal)))
     scale, V, _ = _reduce(jac.jac, 1e-6)
     rng = np.random.default_rng(seed)
 

@@ -11,77 +11,36 @@ finite differences). Poses are (..., 6); parameters are named leaves of the tabl
 effect ("base_joints", "zero_lengths", "lead", "spiral.lead", "lead_scale.eps", ...).
 """
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import ArrayLike, Float
 
-from ._batch import flatten_batch, run_batch
-from ._effects import Effects, resolve_effects
-from ._errors import check_finite_poses, require_x64
-from ._kinematics import leg_vectors
-from ._linalg import solve_small
-from ._model import inverse_extension, length_residual
-from ._rotation import euler_rate_matrix, rotation_matrix
-from ._table import Table
+from .. import _params as params
+from .._batch import flatten_batch, run_batch
+from .._effects import Effects, resolve_effects
+from .._errors import check_finite_poses, require_x64
+from .._kinematics import leg_lines
+from .._linalg import solve_small
+from .._model import inverse_extension, length_residual
+from .._rotation import euler_rate_matrix, rotation_matrix
+from .._table import Table
 
-GEOMETRY_42 = ("zero_lengths", "platform_joints", "base_joints")  # the paper's e_p order
-XYZ = "xyz"
-
-
-TABLE_LEAVES = (
-    "base_joints",
-    "platform_joints",
-    "base_axes",
-    "platform_axes",
-    "zero_lengths",
-    "home_height",
-    "lead",
-    "hand",
-)
+GEOMETRY_42 = params.PAPER_42  # the paper's e_p order (kept for existing imports)
 
 
 def _get(model, name: str):
-    table, effects = model
-    if "." in name:
-        eff, field = name.split(".", 1)
-        return getattr(effects[eff], field)
-    return getattr(table, name)
+    return params.get(model[0], model[1], name)
 
 
 def check_parameter_names(model, wrt) -> None:
     """Raise ValueError naming any entry of `wrt` that is not a parameter of `model`."""
-    _, effects = model
-    for name in wrt:
-        if "." in name:
-            eff, field = name.split(".", 1)
-            if eff not in effects:
-                raise ValueError(
-                    f"parameter '{name}': no effect '{eff}' in the model (effects: "
-                    f"{', '.join(sorted(effects)) or 'none'}); pass it in `effects=`"
-                )
-            if not isinstance(getattr(effects[eff], field, None), jax.Array):
-                raise ValueError(f"parameter '{name}': effect '{eff}' has no array field '{field}'")
-        elif name not in TABLE_LEAVES:
-            raise ValueError(
-                f"unknown parameter '{name}': use a table leaf ({', '.join(TABLE_LEAVES)}) or "
-                f"'effect.field'"
-            )
+    params.check(model[0], model[1], wrt)
 
 
 def parameter_names(model, wrt) -> list[str]:
     """Column names of the flattened parameters: legs 1-based, e.g. 'base_joints[2].y'."""
-    names = []
-    for name in wrt:
-        shape = np.shape(_get(model, name))
-        if shape == ():
-            names.append(name)
-        elif len(shape) == 1:
-            names += [f"{name}[{i + 1}]" for i in range(shape[0])]
-        else:
-            names += [f"{name}[{i + 1}].{XYZ[j]}" for i in range(shape[0]) for j in range(shape[1])]
-    return names
+    return [k for name in wrt for k in params.element_keys(name, np.shape(_get(model, name)))]
 
 
 def _flatten(model, wrt):
@@ -95,7 +54,7 @@ def _flatten(model, wrt):
             n = int(np.prod(shp))
             out.append(theta[k : k + n].reshape(shp))
             k += n
-        return eqx.tree_at(lambda m: [_get(m, n) for n in wrt], model, out)
+        return params.replace(model[0], model[1], dict(zip(wrt, out)))
 
     return theta, unflatten
 
@@ -135,7 +94,7 @@ def per_leg_jacobians_one(table, effects, pose, wrt):
         for x, w, o in zip(leaves, widths, offsets):
             d = c[o : o + w]
             new.append(x + (d[0] if x.ndim == 1 else d[None, :]))
-        return eqx.tree_at(lambda m: [_get(m, n) for n in wrt], model, new)
+        return params.replace(model[0], model[1], dict(zip(wrt, new)))
 
     def residual(c, q, s):
         t, eff = perturbed(c)
@@ -170,7 +129,7 @@ def pose_sensitivity(
     effects: Effects | None = None,
     rotation_vector: bool = False,
     chunk: int = 1 << 14,
-) -> tuple[Float[Array, "... 6 P"], list[str]]:
+) -> tuple[Float[ArrayLike, "... 6 P"], list[str]]:
     """Sensitivity of the actual pose to parameters at commanded `poses` (..., 6).
 
     Returns (J, names): J (..., 6, P) with rows (x, y, z in mm; then either Euler-angle
@@ -191,15 +150,13 @@ def pose_sensitivity(
     return J.reshape(batch_shape + J.shape[1:]), names
 
 
-def paper_error_jacobian_one(table: Table, pose: Float[Array, "6"]) -> Float[Array, "6 42"]:
+def paper_error_jacobian_one(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "6 42"]:
     """The paper's eq. (11), e = J_lx⁻¹ J_s, at one pose: (6, 42), rows [dt (mm); dΩ (rad,
     small rotation vector, base frame)], columns [dl_1..6, da_1^p..da_6^p (xyz), db_1..db_6
     (xyz)]. J_lx rows [u_iᵀ, (R a_i^p × u_i)ᵀ]; J_s rows [1, −u_iᵀR, u_iᵀ] (rigid geometry)."""
-    l = leg_vectors(table, pose)
-    u = l / jnp.linalg.norm(l, axis=-1, keepdims=True)
+    u, moment = leg_lines(table, pose)
     R = rotation_matrix(pose[3:])
-    Ra = table.platform_joints @ R.T
-    J_lx = jnp.concatenate([u, jnp.cross(Ra, u)], axis=1)
+    J_lx = jnp.concatenate([u, moment], axis=1)
     eye = jnp.eye(6)
     J_dl = eye
     J_da = -(eye[:, :, None] * (u @ R)[:, None, :]).reshape(6, 18)
@@ -208,8 +165,8 @@ def paper_error_jacobian_one(table: Table, pose: Float[Array, "6"]) -> Float[Arr
     return jnp.linalg.solve(J_lx, J_s)
 
 
-def paper_error_jacobian(table: Table, poses) -> Float[Array, "... 6 42"]:
+def paper_error_jacobian(table: Table, poses) -> Float[ArrayLike, "... 6 42"]:
     """Batched `paper_error_jacobian_one`: (..., 6) -> (..., 6, 42)."""
-    from ._api import _per_pose
+    from .._api import per_pose
 
-    return _per_pose(paper_error_jacobian_one, table, poses, 1 << 16)
+    return per_pose(paper_error_jacobian_one, table, poses, 1 << 16)

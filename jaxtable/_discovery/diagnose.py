@@ -30,18 +30,21 @@ traced masks.
 
 import math
 import sys
+import warnings
 from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._calibrate import Calibration, Setup, fit, setup
-from ._data import Measurements
-from ._effects import EFFECTS
-from ._table import Table
+from .. import _params as params
+from .._calibration.fit import Calibration, Setup, fit, setup
+from .._calibration.heldout import heldout_rms, make_folds
+from .._calibration.measurements import Measurements
+from .._effects import EFFECTS
+from .._table import Table
 
-GEOMETRY = ("base_joints", "platform_joints", "zero_lengths")
+GEOMETRY = params.GEOMETRY
 
 
 def _chi2_sf(x: float, dof: int) -> float:
@@ -68,10 +71,6 @@ def applicable(name: str, nominal: Table, data: Measurements) -> tuple[bool, str
     if name == "periodic_lead" and not np.any(np.asarray(nominal.lead) > 0):
         return False, "the table has no screw lead (period unknown)"
     return True, ""
-
-
-def _fields(name: str) -> list[str]:
-    return [f"{name}.{f}" for f in EFFECTS[name].fields]
 
 
 @dataclass
@@ -134,8 +133,10 @@ class Step:
 
 @dataclass
 class Diagnosis:
-    """Outcome of `diagnose`. RMS values are of σ-normalised residuals (1.0 = at the noise);
-    `rms_columns_*` give them per measured column in mm / rad."""
+    """Outcome of `diagnose`. RMS in the same form as `Calibration`: `rms_sigma_before` /
+    `rms_sigma_after` (σ-normalised residuals, 1.0 = at the noise; also under their earlier
+    names `rms_before` / `rms_after`) and `rms_columns_before` / `rms_columns_after` (per
+    measured column, mm / rad); `heldout_rms_*` are σ-normalised."""
 
     selected: list
     unexplained: bool
@@ -148,9 +149,37 @@ class Diagnosis:
     heldout_rms_after: float
     not_applicable: dict
     alpha: float
+    model_effects: list = field(default_factory=list)  # base + selected: the final model
+    noise_mode: str = "fixed"  # "fixed": stated σ; "estimate": σ estimated per model
     setup: Setup = field(repr=False, default=None)
     data: Measurements = field(repr=False, default=None)
     nominal: Table = field(repr=False, default=None)
+
+    @property
+    def rms_sigma_before(self) -> float:
+        return self.rms_before
+
+    @property
+    def rms_sigma_after(self) -> float:
+        return self.rms_after
+
+    @property
+    def rms_columns_before(self) -> dict:
+        return self.base.rms_columns_after
+
+    @property
+    def rms_columns_after(self) -> dict:
+        return self.final.rms_columns_after
+
+    def fitted_model(self):
+        """The final model as a `FittedModel` (table, the effects of the final model, the
+        instrument frames per session label and target, the controller's zero lengths):
+        what `jaxtable diagnose --out` writes as `calibrated_table.toml`."""
+        from .._calibration.model_file import fitted_model
+
+        fm = fitted_model(self.final, self.nominal, self.data.sessions)
+        fm.effects = {k: v for k, v in fm.effects.items() if k in self.model_effects}
+        return fm
 
     @property
     def candidates(self) -> list:
@@ -171,13 +200,20 @@ class Diagnosis:
                 "heldout_rms_before": self.heldout_rms_before,
                 "heldout_rms_after": self.heldout_rms_after,
                 "units": "RMS of residuals / sigma (1.0 = instrument noise)",
-                "rms_columns_before": self.base.rms_after,
-                "rms_columns_after": self.final.rms_after,
+                "rms_columns_before": self.rms_columns_before,
+                "rms_columns_after": self.rms_columns_after,
             },
             "candidates": [c.as_json() for c in self.candidates],
             "steps": [s.as_json() for s in self.steps],
             "not_applicable": self.not_applicable,
             "false_alarm_rate": self.alpha,
+            "noise": {
+                "mode": self.noise_mode,
+                "structure_test": "chi2 against the stated sigma"
+                if self.noise_mode == "fixed"
+                else "not run: no stated sigma (the candidates' dBIC tests decide)",
+                "groups": None if self.final.noise is None else self.final.noise.as_json(),
+            },
             "selected_params": {
                 name: {f: {"value": v.tolist(), "std": s.tolist()} for f, (v, s) in p.items()}
                 for name, p in ((n, self.effect_params(n)) for n in self.selected)
@@ -190,42 +226,13 @@ def _norm_rms(cal: Calibration, rows: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r**2)))
 
 
-def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
-    perm = np.random.default_rng(seed).permutation(n)
-    return [np.sort(perm[i::k]) for i in range(k)]
-
-
-def heldout_rms(cal: Calibration, folds: list, mask: np.ndarray, tol: float = 1e-6) -> float:
-    """k-fold held-out RMS of σ-normalised residuals (pooled over folds): for each fold F,
-    the residuals of F's rows under the model fitted to the other rows.
-
-    Computed from the full-data fit by the block-deletion identity of least squares,
-    e_F(without F) = (I − H_FF)⁻¹ e_F, H = J (JᵀJ)⁺ Jᵀ, on the Gauss-Newton linearisation at
-    the fit (the tests compare it with refits: the corrections are µm-level, where the model
-    is linear to many digits). k refits cost k full fits; this costs one SVD."""
-    J = cal.jacobian
-    e = cal.residual.reshape(-1)
-    scale = np.linalg.norm(J, axis=0)
-    scale[scale == 0] = 1.0
-    U, sv, _ = np.linalg.svd(J / scale, full_matrices=False)
-    U = U[:, sv > tol * sv[0]]
-    sq, count = 0.0, 0
-    for rows in folds:
-        idx = (rows[:, None] * 6 + np.arange(6)[None, :])[mask[rows]]
-        UF = U[idx]
-        x = np.linalg.solve(np.eye(len(idx)) - UF @ UF.T, e[idx])
-        sq += float(x @ x)
-        count += len(idx)
-    return math.sqrt(sq / max(count, 1))
-
-
 def diagnose(
-    data: Measurements,
-    nominal: Table,
+    nominal: Table | Measurements,  # (data, table): the deprecated order
+    data: Measurements | Table,
     *,
     base: tuple = (),
     library=None,
-    compensated: bool = False,
+    compensated: bool | None = None,
     alpha: float = 0.01,
     bic_threshold: float = 10.0,
     min_gain: float = 0.01,
@@ -234,20 +241,34 @@ def diagnose(
     max_effects: int = 3,
     seed: int = 0,
     log=None,
+    noise: str | None = None,
+    sigma: dict | None = None,
 ) -> Diagnosis:
     """Find which library effects the data need beyond the geometric model.
 
-    `data`: measurements (all rows are used; held-out scores by `folds`-fold cross-
-    validation); `nominal`: the table the controller believes; `base`: effects in the starting
+    `nominal`: the table the controller believes; `data`: measurements (all rows are used;
+    held-out scores by `folds`-fold cross-validation); `base`: effects in the starting
     model besides the geometry (default none: the rigid model, so even the passive spiral term
     must be found); `library`: candidate effect names (default all of `EFFECTS`);
     `compensated`: without cmd_l columns, whether the controller compensated the spiral term
-    (default False); `alpha`: false-alarm rate of the χ² structure test; `bic_threshold`:
+    (must be stated then, when the table has a lead: the same rule as
+    `calibrate`); `alpha`: false-alarm rate of the χ² structure test; `bic_threshold`:
     ΔBIC a candidate must beat; `min_gain`: fractional held-out RMS gain it must bring;
     `min_share`: share of the current excess χ² (χ² − dof) it must explain — an effect that
     only nibbles at a larger unexplained structure is not named as its cause;
-    `log`: callable for progress lines (default: stderr).
+    `log`: callable for progress lines (default: stderr); `noise`: "fixed" (the stated σ:
+    the χ² structure test runs) or "estimate" (σ estimated for each model in turn; the χ²
+    test then has nothing to test against and `unexplained` is never claimed); default:
+    "fixed" when the data state σ for every measured cell, else "estimate"; `sigma`:
+    {column: σ (mm / rad)} stated by the user (overrides the file's σ columns).
     """
+    if isinstance(nominal, Measurements) and isinstance(data, Table):
+        warnings.warn(
+            "diagnose(data, table) is deprecated: call diagnose(table, data) (model first)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        nominal, data = data, nominal
     log = log or (lambda msg: print(msg, file=sys.stderr))
     library = list(EFFECTS) if library is None else list(library)
     for name in list(base) + library:
@@ -255,11 +276,11 @@ def diagnose(
             raise ValueError(f"unknown effect '{name}'; known: {', '.join(EFFECTS)}")
     n_sessions = len(data.sessions)
     effects = {name: cls.null(n_sessions) for name, cls in EFFECTS.items()}
-    free_all = GEOMETRY + tuple(f for name in EFFECTS for f in _fields(name))
-    st = setup(nominal, data, free_all, effects=effects, compensated=compensated)
+    free_all = GEOMETRY + tuple(f for name in EFFECTS for f in params.effect_parameters(name))
+    st = setup(nominal, data, free_all, effects=effects, compensated=compensated, sigma=sigma)
     mask = st.mask
     all_rows = np.arange(len(data))
-    fold_rows = _folds(len(data), folds, seed)
+    fold_rows = make_folds(len(data), folds, seed)
     not_applicable = {}
     for name in library:
         ok, why = applicable(name, nominal, data)
@@ -268,15 +289,25 @@ def diagnose(
     pool = [n for n in library if n not in not_applicable and n not in base]
 
     def free_mask(model):
-        return st.free_mask(GEOMETRY + tuple(f for n in model for f in _fields(n)))
+        return st.free_mask(GEOMETRY + tuple(f for n in model for f in params.effect_parameters(n)))
+
+    if noise is None:
+        noise = "fixed" if st.noise is not None and st.noise.stated.all() else "estimate"
+    stated = noise == "fixed"
+
+    def fit_model(model, theta0=None):
+        """The current model, with the noise re-estimated for it unless σ is stated."""
+        return fit(st, free_mask(model), noise=noise, theta0=theta0)
 
     model = list(base)
     log(f"fitting the base model ({', '.join(['geometry'] + model)}) on {len(data)} rows ...")
-    current = fit(st, free_mask(model))
+    current = fit_model(model)
     base_fit = current
     steps = []
     while True:
-        p = _chi2_sf(current.chi2, current.dof)
+        # candidates are scored with the current model's weights (stated σ, or the σ
+        # estimated for the current model), so their χ² compare with its χ²
+        p = _chi2_sf(current.chi2, current.dof) if stated else float("nan")
         rms = _norm_rms(current, all_rows, mask)
         log(
             f"model {['geometry'] + model}: chi2/dof = {current.chi2:.1f}/{current.dof}"
@@ -286,10 +317,10 @@ def diagnose(
         for name in pool:
             if name in model:
                 continue
-            cal = fit(st, free_mask(model + [name]))
+            cal = fit(st, free_mask(model + [name]), noise="fixed", weight=current.weight)
             dbic = (cal.chi2 - current.chi2) + (cal.rank - current.rank) * math.log(cal.n_obs)
-            params = {f: cal.parameter(f"{name}.{f}") for f in EFFECTS[name].fields}
-            cands.append(Candidate(name, float(dbic), None, None, cal.chi2, cal.rank, params, cal))
+            fitted = {f: cal.parameter(f"{name}.{f}") for f in EFFECTS[name].fields}
+            cands.append(Candidate(name, float(dbic), None, None, cal.chi2, cal.rank, fitted, cal))
         cands.sort(key=lambda c: c.delta_bic)
         strong = [c for c in cands if c.delta_bic < -bic_threshold]
         heldout_current = heldout_rms(current, fold_rows, mask)
@@ -305,7 +336,9 @@ def diagnose(
                 f"{100 * c.heldout_gain:+6.1f} %  explains {100 * c.share:5.0f} % of the excess"
             )
         paying = [c for c in strong if c.heldout_gain > min_gain and c.share >= min_share]
-        consistent = p >= alpha and not strong
+        # without stated σ the χ² test has nothing to test against: only the candidates'
+        # likelihood-ratio (ΔBIC) tests decide
+        consistent = (p >= alpha or not stated) and not strong
         step = Step(
             ["geometry"] + model,
             current.chi2,
@@ -332,19 +365,23 @@ def diagnose(
         step.decision = f"add {best.effect}"
         log(f"  -> add {best.effect}")
         model.append(best.effect)
-        current = best.fit
+        current = best.fit if stated else fit_model(model, theta0=best.fit.theta)
         heldout_current = best.heldout_rms
     final = current
     heldout_current = heldout_rms(final, fold_rows, mask)
-    heldout_before = steps[0].heldout_rms
-    p_final = _chi2_sf(final.chi2, final.dof)
+    # before/after in the same units: the final model's σ (stated, or estimated for it)
+    to_final = np.where(mask, final.weight / np.where(mask, base_fit.weight, 1.0), 0.0)
+    heldout_before = heldout_rms(base_fit, fold_rows, mask, rescale=to_final)
+    p_final = _chi2_sf(final.chi2, final.dof) if stated else float("nan")
     return Diagnosis(
         selected=[m for m in model if m not in base],
-        unexplained=p_final < alpha,
+        model_effects=list(model),
+        noise_mode=noise,
+        unexplained=bool(stated and p_final < alpha),
         steps=steps,
         base=base_fit,
         final=final,
-        rms_before=_norm_rms(base_fit, all_rows, mask),
+        rms_before=float(np.sqrt(np.mean((base_fit.residual * to_final)[mask] ** 2))),
         rms_after=_norm_rms(final, all_rows, mask),
         heldout_rms_before=heldout_before,
         heldout_rms_after=heldout_current,
@@ -363,9 +400,9 @@ def leg_residuals(diag: Diagnosis, cal: Calibration) -> np.ndarray | None:
     """(N, 6) leg-length equivalent of the pose residuals (mm): δL = (∂L/∂q) δq at the
     fitted pose, with δq the measured-minus-model pose rotated back from the instrument
     frame. Needs all six columns measured (a 6-D tracker); None otherwise."""
-    from ._forward import forward_one
-    from ._kinematics import leg_lengths
-    from ._rotation import rotation_matrix
+    from .._forward import forward_one
+    from .._kinematics import leg_lengths
+    from .._rotation import rotation_matrix
 
     st = diag.setup
     if not st.mask.all():
@@ -390,8 +427,8 @@ def signatures(diag: Diagnosis) -> dict:
     """Per-leg signature variables (N, 6) the effects respond to: extension s (mm), rod
     rotation Δα (deg), direction d, screw phase 2π s/p (rad), temperature (°C), leg force
     (N), session index."""
-    from ._api import rod_rotation
-    from ._effects import leg_forces
+    from .._api import rod_rotation
+    from .._effects import leg_forces
 
     st, data, nominal = diag.setup, diag.data, diag.nominal
     problem = st.problem

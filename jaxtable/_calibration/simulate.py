@@ -6,12 +6,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._api import actuator_command, forward
-from ._context import Context, batch_context, directions
-from ._data import Measurements
-from ._instrument import Instrument, observe
-from ._table import Table, replace
-from ._workspace import Workspace
+from .._analysis.workspaces import Workspace
+from .._api import actuator_command, forward
+from .._context import Context, batch_context, directions
+from .._errors import renamed_argument
+from .._table import Table, replace
+from .instruments import Instrument, observe
+from .measurements import Measurements
 
 # --- pose plans (mm / rad, (N, 6)) ---------------------------------------------------------
 
@@ -42,7 +43,7 @@ def plan_swing(
     dof: str = "roll", amplitude: float = 5.0, cycles: float = 2.0, points: int = 80
 ) -> np.ndarray:
     """A sinusoidal swing of one DOF as an IMU test uses: `amplitude` in mm or deg."""
-    from ._errors import POSE_COLUMNS
+    from .._errors import POSE_COLUMNS
 
     k = POSE_COLUMNS.index(dof)
     a = amplitude if k < 3 else np.deg2rad(amplitude)
@@ -76,7 +77,8 @@ def simulate(
     instrument: Instrument,
     *,
     effects=None,
-    compensate: bool = True,
+    compensated: bool = True,
+    compensate: bool | None = None,
     frame=(0, 0, 0, 0, 0, 0),
     target=(0, 0, 0, 0, 0, 0),
     session="1",
@@ -86,7 +88,7 @@ def simulate(
 ) -> Measurements:
     """Measurements of the `true` table driven by a controller that believes `nominal`.
 
-    The controller commands `actuator_command(nominal, poses, compensate)` (rows in the order
+    The controller commands `actuator_command(nominal, poses, compensated)` (rows in the order
     the table visits them); the true table (with `effects`, default its own hardware effects:
     the spiral term) settles at the exact forward-kinematics pose in each stop's context
     (direction of travel from the row order, `temperature` °C and `payload` kg: scalars or
@@ -97,7 +99,8 @@ def simulate(
     """
     poses = np.asarray(poses, dtype=float)
     n = len(poses)
-    cmd = np.asarray(actuator_command(nominal, poses, compensate))
+    compensated = renamed_argument(compensated, compensate, "compensate", "compensated", "simulate")
+    cmd = np.asarray(actuator_command(nominal, poses, compensated))
     labels = np.broadcast_to(np.asarray(session).astype(str), (n,))
     sess = np.unique(labels, return_index=True)
     order = [sess[0][k] for k in np.argsort(sess[1])]

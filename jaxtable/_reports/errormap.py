@@ -5,22 +5,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ._errormap import TARGET_MM, ErrorMap, Grid, error_map
-from ._errors import POSE_COLUMNS
-from ._rotation import ARCSEC_PER_RAD
-from ._table import Table
-from ._tolerance import SOURCES, Tolerances
+from .._analysis.errormap import TARGET_MM, ErrorMap, Grid, error_map
+from .._analysis.tolerances import SOURCES, Tolerances
+from .._errors import POSE_COLUMNS
+from .._rotation import ARCSEC_PER_RAD
+from .._table import Table
+from .figures import pyplot
 
 LABELS = list(SOURCES) + ["total"]
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _axis(grid: Grid, k: int):
@@ -34,7 +26,7 @@ def _axis(grid: Grid, k: int):
 def slice_figures(table: Table, emap: ErrorMap, out: Path, stem: str) -> list[Path]:
     """Heatmaps over a 2-D slice: total translation and rotation σ (compensated), spiral
     bias when uncompensated, condition number, and the dominant source."""
-    plt = _plt()
+    plt = pyplot()
     g = emap.grid
     x, xl = _axis(g, 0)
     y, yl = _axis(g, 1)
@@ -92,7 +84,7 @@ def x_stroke_figure(
 ) -> Path:
     """Error along the paper's Fig. 9 axis (x every 2.5 mm): σ per source, and the spiral
     bias of an uncompensated controller, against the ±0.2 mm target."""
-    plt = _plt()
+    plt = pyplot()
     xs = np.linspace(-x_range, x_range, 161)
     poses = np.zeros((len(xs), 6))
     poses[:, 0] = xs
@@ -135,7 +127,7 @@ def x_stroke_figure(
 
 def budget_chart(summary: dict, out: Path, stem: str = "error_budget") -> Path:
     """Bars: max and 95th-percentile translation / rotation error per source and totals."""
-    plt = _plt()
+    plt = pyplot()
     names = list(summary["sources"])
     S = summary["sources"]
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.2))
@@ -177,3 +169,30 @@ def summary_markdown(summary: dict, title: str) -> str:
         )
     lines.append("")
     return "\n".join(lines)
+
+
+def write_map_report(
+    table: Table, tol: Tolerances, emap: ErrorMap, summary: dict, out, dofs, n: int
+) -> str:
+    """Figures of a 2-D slice map (`map_<a>_<b>.png`, the x stroke, the budget chart) and
+    `map.md` into `out`; returns the Markdown."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"map_{dofs[0]}_{dofs[1]}"
+    slice_figures(table, emap, out, stem)
+    x_stroke_figure(table, tol, out)
+    budget_chart(summary, out)
+    text = "\n".join(
+        [
+            f"# Error map: {table.name}",
+            "",
+            "Tolerances (file units): "
+            + ", ".join(f"{k} = {v:g}" for k, v in tol.as_dict().items()),
+            "",
+            summary_markdown(summary, f"{dofs[0]}-{dofs[1]} slice, {n} x {n} poses"),
+            f"Figures: {stem}.png, error_x_stroke.png, error_budget.png",
+            "",
+        ]
+    )
+    (out / "map.md").write_text(text)
+    return text

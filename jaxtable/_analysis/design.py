@@ -13,20 +13,20 @@ of the axes of legs 3-1. Joint neutral directions are along the legs at home (se
 """
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import ArrayLike, Float
 
-from ._table import Table
+from .._table import Table
 
 MIRROR = jnp.array([1.0, -1.0, 1.0])
 
 
-def _ring(radius, azimuth_deg) -> Float[Array, "6 3"]:
+def _ring(radius, azimuth_deg) -> Float[ArrayLike, "6 3"]:
     """Joint positions (6, 3) on a circle of `radius` at the given azimuths (deg), z = 0."""
     az = jnp.deg2rad(jnp.stack(azimuth_deg))
     return jnp.stack([radius * jnp.cos(az), radius * jnp.sin(az), jnp.zeros(6)], axis=-1)
 
 
-def _axes(joints: Float[Array, "6 3"], offset) -> Float[Array, "6 3"]:
+def _axes(joints: Float[ArrayLike, "6 3"], offset) -> Float[ArrayLike, "6 3"]:
     """Horizontal unit axes (6, 3) at the joints' tangent direction turned by `offset` (rad)
     about z for legs 1-3, mirrored (y -> −y) for legs 6-4."""
     az = jnp.arctan2(joints[:3, 1], joints[:3, 0]) + jnp.pi / 2 + offset

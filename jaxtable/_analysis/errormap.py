@@ -10,24 +10,25 @@ Per pose (one-pose function `budget_one`, batched with vmap):
 - `reachable`: legs inside the stroke and U-joints within their bend limit.
 """
 
-import math
 from dataclasses import dataclass
 
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from ._batch import run_batch
-from ._errors import POSE_COLUMNS, require_x64
-from ._forward import angle_scale
-from ._kinematics import spiral_extension, within_limits
-from ._linalg import cond_small, inv_small
-from ._rotation import ARCSEC_PER_RAD, euler_rate_matrix
-from ._sensitivity import per_leg_jacobians_one
-from ._table import Table
-from ._tolerance import PARAMETER, SOURCES, Tolerances, budget_effects
+from .. import _params as params
+from .._batch import run_batch
+from .._errors import require_x64
+from .._forward import platform_radius
+from .._kinematics import spiral_extension, within_limits
+from .._linalg import cond_small, inv_small
+from .._rotation import ARCSEC_PER_RAD, euler_rate_matrix
+from .._table import Table
+from .sensitivities import per_leg_jacobians_one
+from .tolerances import PARAMETER, SOURCES, Tolerances, budget_effects
+from .workspaces import Grid, PoseList, workspace_slice
 
-BUDGET_WRT = ("base_joints", "platform_joints", "zero_lengths", "lead_scale.eps", "spiral.lead")
+BUDGET_WRT = params.GEOMETRY + ("lead_scale.eps", "spiral.lead")
 TARGET_MM = 0.2  # the paper's design target: translation error within ±0.2 mm
 
 
@@ -46,7 +47,7 @@ def budget_one(table: Table, sigmas: tuple, pose):
     std = jnp.stack(rows)
     std = jnp.concatenate([std, jnp.sqrt(jnp.sum(std**2, axis=0))[None]])
     bias = Jinv @ spiral_extension(table, pose)  # not compensating = an L0 error of Δl2
-    scale = jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / angle_scale(table))])
+    scale = jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / platform_radius(table))])
     cond = cond_small(Jq * scale)
     reach = within_limits(table, pose)
     return std, bias, cond, reach
@@ -55,76 +56,6 @@ def budget_one(table: Table, sigmas: tuple, pose):
 def _budget_row(shared, pose):
     table, sigmas = shared
     return budget_one(table, sigmas, pose)
-
-
-@dataclass(frozen=True)
-class Grid:
-    """A regular grid over some pose DOF, the others fixed; poses made chunk by chunk so a
-    10⁷-pose grid never exists in memory at once.
-
-    `axes`: indices (0..5) of the gridded DOF; `values`: one 1-D array per axis (mm / rad);
-    `fixed`: (6,) pose for the other DOF.
-    """
-
-    axes: tuple
-    values: tuple
-    fixed: tuple
-
-    @property
-    def shape(self) -> tuple:
-        return tuple(len(v) for v in self.values)
-
-    def __len__(self) -> int:
-        return math.prod(self.shape)
-
-    def poses(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        stop = len(self) if stop is None else min(stop, len(self))
-        idx = np.unravel_index(np.arange(start, stop), self.shape)
-        out = np.tile(np.asarray(self.fixed, dtype=float), (stop - start, 1))
-        for ax, vals, i in zip(self.axes, self.values, idx):
-            out[:, ax] = np.asarray(vals)[i]
-        return out
-
-
-@dataclass(frozen=True)
-class PoseList:
-    """An explicit list of poses (N, 6) (mm / rad) with the `Grid` interface."""
-
-    array: np.ndarray
-
-    @property
-    def shape(self) -> tuple:
-        return (len(self.array),)
-
-    def __len__(self) -> int:
-        return len(self.array)
-
-    def poses(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        return np.asarray(self.array[start:stop], dtype=float)
-
-
-def workspace_slice(dofs=("x", "y"), n=101, ranges=None, fixed=None) -> Grid:
-    """A 2-D (or n-D) slice: `dofs` names from x, y, z, roll, pitch, yaw; `n` points per axis;
-    `ranges` half-ranges in mm / deg (default: the single-DOF workspace ranges);
-    `fixed` the other DOF (mm / deg, default home)."""
-    from ._workspace import Workspace
-
-    axes = []
-    for d in dofs:
-        if d not in POSE_COLUMNS:
-            raise ValueError(f"unknown pose DOF '{d}'; use {', '.join(POSE_COLUMNS)}")
-        axes.append(POSE_COLUMNS.index(d))
-    if len(set(axes)) != len(axes):
-        raise ValueError(f"repeated DOF in slice {dofs}")
-    single = Workspace.to_internal(Workspace().single)
-    if ranges is None:
-        half = [single[a] for a in axes]
-    else:
-        half = [float(r) if a < 3 else math.radians(float(r)) for a, r in zip(axes, ranges)]
-    ns = [n] * len(axes) if np.ndim(n) == 0 else list(n)
-    values = tuple(tuple(np.linspace(-h, h, k)) for h, k in zip(half, ns))
-    fx = tuple(np.zeros(6) if fixed is None else Workspace.to_internal(fixed))
-    return Grid(tuple(axes), values, fx)
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._effects import LeadScale, Spiral
-from ._io import read_toml
+from .._effects import LeadScale, Spiral
+from .._io import read_toml
 
 SOURCES = (
     "base_joints",
@@ -69,6 +69,11 @@ class Tolerances(eqx.Module):
     lead_error: float = 0.025
     clearance: float = 0.100
     spiral_lead: float = 0.0127
+
+    @property
+    def sources(self) -> tuple[str, ...]:
+        """The error sources, in the order every budget reports them."""
+        return SOURCES
 
     def sigma(self, source: str) -> float:
         """σ of the source's parameter in model units."""

@@ -1,0 +1,2 @@
+"""Benchmarks of jaxtable against numpy/scipy baselines (`python -m benchmarks`,
+`jaxtable bench`)."""

@@ -1,0 +1,122 @@
+"""Workspace descriptions: the ranges a table is asked to cover (`Workspace`), and the pose
+sets analyses stream over (`Grid`, `PoseList`, `workspace_slice`)."""
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import equinox as eqx
+import numpy as np
+
+from .._errors import POSE_COLUMNS
+from .._params import pose_from_file
+
+
+class Workspace(eqx.Module):
+    """Ranges in mm / deg (as written in files and tables).
+
+    - `single`: (6,) half-range of each DOF moved alone (x, y, z, roll, pitch, yaw);
+    - `combined`: (6,) half-widths of the box all six DOF share when moved together.
+
+    The default is the reference table's (README): x, y ±200 mm, z ±100 mm, roll, pitch ±15°,
+    yaw ±20° alone; x, y ±100 mm, z ±50 mm, roll, pitch ±7.5°, yaw ±10° together.
+    """
+
+    single: tuple = eqx.field(static=True, default=(200.0, 200.0, 100.0, 15.0, 15.0, 20.0))
+    combined: tuple = eqx.field(static=True, default=(100.0, 100.0, 50.0, 7.5, 7.5, 10.0))
+
+    @staticmethod
+    def to_internal(values) -> np.ndarray:
+        """mm/deg -> mm/rad."""
+        return pose_from_file(values)
+
+    def sweeps(self, n: int = 41) -> np.ndarray:
+        """Each DOF alone over its range: (6, n, 6) poses, mm/rad."""
+        ranges = self.to_internal(self.single)
+        s = np.linspace(-1, 1, n)
+        return np.stack([np.outer(s, np.eye(6)[k] * ranges[k]) for k in range(6)])
+
+    def box_samples(self, n_random: int = 20000, seed: int = 0) -> np.ndarray:
+        """The combined box: its 3^6 grid of corners/edge midpoints and `n_random` uniform
+        samples, (729 + n_random, 6), mm/rad."""
+        box = self.to_internal(self.combined)
+        grid = np.array(list(itertools.product([-1.0, 0.0, 1.0], repeat=6))) * box
+        rnd = np.random.default_rng(seed).uniform(-1, 1, (n_random, 6)) * box
+        return np.concatenate([grid, rnd])
+
+    def describe(self) -> str:
+        def fmt(v):
+            return ", ".join(
+                f"{c} ±{x:g} {'mm' if k < 3 else 'deg'}"
+                for k, (c, x) in enumerate(zip(POSE_COLUMNS, v))
+            )
+
+        return f"each DOF alone: {fmt(self.single)}; all together: {fmt(self.combined)}"
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A regular grid over some pose DOF, the others fixed; poses made chunk by chunk so a
+    10⁷-pose grid never exists in memory at once.
+
+    `axes`: indices (0..5) of the gridded DOF; `values`: one 1-D array per axis (mm / rad);
+    `fixed`: (6,) pose for the other DOF.
+    """
+
+    axes: tuple
+    values: tuple
+    fixed: tuple
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(len(v) for v in self.values)
+
+    def __len__(self) -> int:
+        return math.prod(self.shape)
+
+    def poses(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        stop = len(self) if stop is None else min(stop, len(self))
+        idx = np.unravel_index(np.arange(start, stop), self.shape)
+        out = np.tile(np.asarray(self.fixed, dtype=float), (stop - start, 1))
+        for ax, vals, i in zip(self.axes, self.values, idx):
+            out[:, ax] = np.asarray(vals)[i]
+        return out
+
+
+@dataclass(frozen=True)
+class PoseList:
+    """An explicit list of poses (N, 6) (mm / rad) with the `Grid` interface."""
+
+    array: np.ndarray
+
+    @property
+    def shape(self) -> tuple:
+        return (len(self.array),)
+
+    def __len__(self) -> int:
+        return len(self.array)
+
+    def poses(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        return np.asarray(self.array[start:stop], dtype=float)
+
+
+def workspace_slice(dofs=("x", "y"), n=101, ranges=None, fixed=None) -> Grid:
+    """A 2-D (or n-D) slice: `dofs` names from x, y, z, roll, pitch, yaw; `n` points per axis;
+    `ranges` half-ranges in mm / deg (default: the single-DOF workspace ranges);
+    `fixed` the other DOF (mm / deg, default home)."""
+    axes = []
+    for d in dofs:
+        if d not in POSE_COLUMNS:
+            raise ValueError(f"unknown pose DOF '{d}'; use {', '.join(POSE_COLUMNS)}")
+        axes.append(POSE_COLUMNS.index(d))
+    if len(set(axes)) != len(axes):
+        raise ValueError(f"repeated DOF in slice {dofs}")
+    single = Workspace.to_internal(Workspace().single)
+    if ranges is None:
+        half = [single[a] for a in axes]
+    else:
+        half = [float(r) if a < 3 else math.radians(float(r)) for a, r in zip(axes, ranges)]
+    ns = [n] * len(axes) if np.ndim(n) == 0 else list(n)
+    values = tuple(tuple(np.linspace(-h, h, k)) for h, k in zip(half, ns))
+    fx = tuple(np.zeros(6) if fixed is None else Workspace.to_internal(fixed))
+    return Grid(tuple(axes), values, fx)

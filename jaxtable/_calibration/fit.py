@@ -1,0 +1,830 @@
+"""Calibration: fit the free parameters of the model to measured data (optimistix
+Gauss-Newton with SVD steps, or Levenberg-Marquardt, through the exact forward kinematics),
+with the instrument's frame and target as nuisance parameters, an explicit gauge, covariance
+and an identifiability report.
+
+Residual of row r, column c (measured only): (reading_c(q_r) − measured_rc) / σ_rc, where q_r
+is the forward-kinematics pose of the fitted table for the row's commanded lengths (converted
+to actuator extensions with the controller's nominal L0) and the reading is the instrument's
+view of it (`_instrument.observe`) in the frame of the row's session.
+
+Gauge. An instrument frame estimated with 6 DOF can absorb any rigid motion of the base
+joints, and a target offset any rigid motion of the platform joints (to first order): those
+directions are removed from the joint parameters (`gauge` in the result says which), so the
+joints are fitted modulo rigid motions and the frame/target carry the rest.
+"""
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
+
+from .. import _params as params
+from .._api import actuator_command
+from .._context import Context, directions
+from .._effects import resolve_effects
+from .._forward import RESULTS, ForwardOptions, forward_one
+from .._kinematics import in_stroke
+from .._rotation import euler_from_matrix
+from .._table import Table, replace
+from .instruments import observe
+from .measurements import Measurements
+from .noise import NoiseEstimate, NoiseModel, group_scales, noise_model
+from .noise import estimate as noise_estimate
+from .noise import redundancy as noise_redundancy
+
+JOINTS = params.JOINTS
+COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
+METHODS = ("gauss_newton", "levenberg_marquardt")
+
+
+def rigid_motion_basis(points: np.ndarray) -> np.ndarray:
+    """(18, 6) orthonormal basis of the first-order rigid motions of 6 points (6, 3)."""
+    cols = []
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = 1.0
+        cols.append(np.tile(e, 6))
+        cols.append(np.cross(e, points).reshape(-1))
+    q, _ = np.linalg.qr(np.stack(cols, 1))
+    return q
+
+
+def complement_basis(points: np.ndarray) -> np.ndarray:
+    """(18, 12) orthonormal basis of joint displacements that are not rigid motions."""
+    G = rigid_motion_basis(points)
+    u, _, _ = np.linalg.svd(G, full_matrices=True)
+    return u[:, 6:]
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Static description of the fitted parameters: which leaves, the gauge bases, which
+    frame/target components are estimated."""
+
+    free: tuple
+    frame_dofs: tuple
+    target_dofs: tuple
+    n_sessions: int
+    gauge: tuple  # names of the joint sets fitted modulo rigid motions
+
+
+def nuisance_dofs(measured_mask: np.ndarray) -> tuple[tuple, tuple]:
+    """(frame DOFs, target DOFs) an instrument that reads the columns `measured_mask` (6,)
+    can see (indices into x, y, z, roll, pitch, yaw).
+
+    Frame: a translation along axis k shows in position column k only; a rotation about
+    axis a shows in angle column a, and in every position column other than a (it turns the
+    platform's motion into that column: the cosine error of an interferometer's beam). The
+    target offset on the platform: its position when all three positions are read (a point
+    tracker follows a point), its orientation when all three angles are. What the columns
+    can see may still be undetermined by a particular pose plan (an x-line run cannot tell a
+    beam tilt from an offset); the fit's identifiability report says so.
+    """
+    m = np.asarray(measured_mask, bool)
+    frame = [k for k in range(3) if m[k]]
+    frame += [3 + a for a in range(3) if m[3 + a] or any(m[b] for b in range(3) if b != a)]
+    target = ([0, 1, 2] if m[:3].all() else []) + ([3, 4, 5] if m[3:].all() else [])
+    return tuple(frame), tuple(target)
+
+
+class Problem(eqx.Module):
+    """Arrays of one calibration problem (the jitted fit takes it as an argument, so data
+    sets of the same shape reuse one compilation)."""
+
+    nominal: Table
+    start: Table
+    effects: dict
+    s: jax.Array  # (N, 6) actuator extensions
+    guess: jax.Array  # (N, 6) commanded poses
+    measured: jax.Array  # (N, 6) NaN -> 0
+    weight: jax.Array  # (N, 6) 1/σ, 0 where not measured
+    session: jax.Array  # (N,) int
+    bases: dict  # joint set -> (18, k) basis
+    ctx: Context  # batched (N,) context of every stop
+
+
+def build_model(problem: Problem, layout: Layout, theta):
+    table, effects = problem.start, problem.effects
+    changes = {}
+    for name in layout.free:
+        step = theta[name]
+        if name in params.JOINTS:
+            step = (problem.bases[name] @ step).reshape(6, 3)
+        changes[name] = params.get(table, effects, name) + step
+    table, effects = params.replace(table, effects, changes)
+    frame = (
+        jnp.zeros((layout.n_sessions, 6)).at[:, np.array(layout.frame_dofs)].set(theta["frame"])
+        if layout.frame_dofs
+        else jnp.zeros((layout.n_sessions, 6))
+    )
+    target = (
+        jnp.zeros(6).at[np.array(layout.target_dofs)].set(theta["target"])
+        if layout.target_dofs
+        else jnp.zeros(6)
+    )
+    return table, effects, frame, target
+
+
+def _predict(problem: Problem, layout: Layout, theta, options=ForwardOptions()):
+    table, effects, frame, target = build_model(problem, layout, theta)
+
+    def one(s, g, sess, ctx):
+        q, result, _, _ = forward_one(table, effects, s, g, options, ctx)
+        return observe(q, frame[sess], target), result == RESULTS.successful
+
+    return jax.vmap(one)(problem.s, problem.guess, problem.session, problem.ctx)
+
+
+def residual(theta, args):
+    problem, layout = args
+    reading, _ = _predict(problem, layout, theta)
+    diff = reading - problem.measured
+    diff = diff.at[:, 3:].set(jnp.mod(diff[:, 3:] + jnp.pi, 2 * jnp.pi) - jnp.pi)
+    return (diff * problem.weight).reshape(-1)
+
+
+residual_jit = eqx.filter_jit(residual)
+
+
+@eqx.filter_jit
+def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_newton", rcond=1e-6):
+    """Gauss-Newton in Jacobi-scaled variables u (θ = θ0 + D·mask·u, D = 1 / column norms of the
+    Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps. `mask` (P,)
+    (0/1, traced) freezes parameters without recompiling, so nested models and folds of one
+    data set share one compilation."""
+    flat0, unravel = ravel_pytree(theta0)
+
+    def res_flat(f):
+        return residual(unravel(f), (problem, layout))
+
+    J0 = jax.jacfwd(res_flat)(flat0)
+    norms = jnp.linalg.norm(J0, axis=0)
+    D = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 1.0) * mask
+
+    def res_scaled(u, _):
+        return res_flat(flat0 + D * u)
+
+    # Gauss-Newton with a truncated-SVD least-squares step: the problems are nearly linear
+    # (µm-level corrections, frames initialised in closed form), so it converges in a few
+    # steps where LM's trust region takes tens; singular values below rcond × the largest
+    # (frozen, i.e. masked, and unidentifiable directions) get no step, so they stay at their
+    # start values instead of drifting.
+    if method == "gauss_newton":
+        solver = optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.SVD(rcond=rcond))
+    else:
+        solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(
+        res_scaled, solver, jnp.zeros_like(flat0), None, max_steps=max_steps, throw=False
+    )
+    flat = flat0 + D * sol.value
+    J = jax.jacfwd(res_flat)(flat)
+    value = unravel(flat)
+    _, solved = _predict(problem, layout, value)
+    return value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], J, solved
+
+
+def _kabsch(P, Q):
+    """Rotation R and translation t minimising |R P + t − Q| over rows (P, Q (N, 3))."""
+    pc, qc = P.mean(0), Q.mean(0)
+    H = (P - pc).T @ (Q - qc)
+    U, S, Vt = np.linalg.svd(H)
+    if S[1] < 1e-9 * max(S[0], 1e-300):  # collinear points: no rotation information
+        return np.eye(3), qc - pc
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1, 1, d]) @ U.T
+    return R, qc - R @ pc
+
+
+def initial_frames(data: Measurements, frame_dofs, predicted=None) -> np.ndarray:
+    """Closed-form instrument frames (S, 6) per session: rigid registration (Kabsch) of the
+    measured positions against the commanded ones (or `predicted` (N, 6) readings in the base
+    frame) over the rows that read all three positions, when the frame has all six DOFs;
+    otherwise the mean offset of each measured translation column. Lost cells (NaN) are not
+    measured: they never enter a sum. A session with fewer than 3 complete rows gets its
+    offsets only (rotation 0)."""
+    out = np.zeros((len(data.sessions), 6))
+    idx = data.session_index
+    ref = data.cmd_pose if predicted is None else np.asarray(predicted)
+    for k in range(len(data.sessions)):
+        rows = idx == k
+        P = ref[rows, :3]
+        Q = data.measured[rows, :3]
+        complete = np.isfinite(Q).all(axis=1)
+        if len(frame_dofs) == 6 and complete.sum() >= 3:
+            R, t = _kabsch(P[complete], Q[complete])
+            out[k, :3] = t
+            out[k, 3:] = np.asarray(euler_from_matrix(jnp.asarray(R)))
+        else:
+            for c in frame_dofs:
+                if c < 3 and np.isfinite(Q[:, c]).any():
+                    out[k, c] = np.nanmean(Q[:, c] - P[:, c])
+    return out
+
+
+@dataclass
+class Calibration:
+    """Result of `calibrate`. `table`, `effects`: the fitted model; `frame` (S, 6) instrument
+    frames per session and `target` (6,) (mm / rad); `names` of the fitted parameters (stable
+    keys; joint sets fitted modulo rigid motions appear as their non-rigid components
+    `base_joints.g1..12`) and their physical `labels`; `value`, `std` and `correlation` of
+    them (std = inf for an unidentifiable direction); `singular_values` of the column-scaled
+    weighted Jacobian; `unidentifiable`: list of (singular value, [(label, weight), ...]) for
+    each direction the data cannot determine; `chi2`, `dof`; `converged`, `steps`.
+
+    RMS, in the same form as `Diagnosis`: `rms_sigma_before` / `rms_sigma_after` (RMS of the
+    σ-normalised residuals, 1.0 = at the noise) and `rms_columns_before` /
+    `rms_columns_after` (per measured column, mm / rad); `rms_before` / `rms_after` are the
+    per-column ones under their earlier names."""
+
+    table: Table
+    effects: dict
+    frame: np.ndarray
+    target: np.ndarray
+    names: list
+    value: np.ndarray
+    std: np.ndarray
+    correlation: np.ndarray
+    singular_values: np.ndarray
+    unidentifiable: list
+    rms_before: dict
+    rms_after: dict
+    chi2: float
+    dof: int
+    converged: bool
+    steps: int
+    layout: Layout
+    bases: dict = field(default_factory=dict)
+    theta: dict = field(default_factory=dict)
+    effects_nominal: dict = field(default_factory=dict)
+    rank: int = 0
+    n_obs: int = 0
+    residual: np.ndarray | None = None  # (N, 6) weighted residuals after the fit
+    covariance: np.ndarray | None = None
+    jacobian: np.ndarray | None = None  # (N·6, P) weighted residual Jacobian, free columns
+    weight: np.ndarray | None = None  # (N, 6) the weights 1/σ of the fit (all rows)
+    noise: NoiseEstimate | None = None
+    labels: list = field(default_factory=list)
+    rows_skipped: int = 0  # rows with nothing measured (not fitted)
+    rms_sigma_before: float = float("nan")
+    rms_sigma_after: float = float("nan")
+
+    @property
+    def rms_columns_before(self) -> dict:
+        return self.rms_before
+
+    @property
+    def rms_columns_after(self) -> dict:
+        return self.rms_after
+
+    def parameter(self, prefix: str):
+        """(value, std) arrays of the fitted parameters whose name starts with `prefix`
+        (e.g. "spiral.lead")."""
+        idx = [i for i, n in enumerate(self.names) if n == prefix or n.startswith(prefix + "[")]
+        return self.value[idx], self.std[idx]
+
+    def report(self) -> str:
+        lines = [
+            f"converged: {self.converged} ({self.steps} steps); chi2/dof = "
+            f"{self.chi2:.1f}/{self.dof} = {self.chi2 / max(self.dof, 1):.3f}",
+            f"RMS of residuals / sigma (before -> after): {self.rms_sigma_before:.3f} -> "
+            f"{self.rms_sigma_after:.3f} (1.0 = at the "
+            + ("estimated" if self.noise is not None and self.noise.estimated else "stated")
+            + " noise)",
+            "RMS residual per measured column, mm / rad (before -> after): "
+            + ", ".join(
+                f"{c} {self.rms_before[c]:.4g} -> {self.rms_after[c]:.4g}" for c in self.rms_after
+            ),
+        ]
+        if self.noise is not None:
+            lines += self.noise.lines()
+        if self.rows_skipped:
+            lines.append(f"{self.rows_skipped} row(s) with nothing measured: skipped")
+        if self.layout.frame_dofs and len(self.layout.frame_dofs) < 6:
+            seen = [params.POSE[k] for k in self.layout.frame_dofs]
+            unseen = [c for k, c in enumerate(params.POSE) if k not in self.layout.frame_dofs]
+            lines.append(
+                f"instrument frame: {', '.join(seen)} estimated; {', '.join(unseen)} "
+                "unobservable with the measured columns"
+            )
+        if self.layout.gauge:
+            lines.append(
+                "gauge: " + ", ".join(self.layout.gauge) + " fitted modulo rigid motions "
+                "(absorbed by the instrument frame / target offset)"
+            )
+        if self.unidentifiable:
+            lines.append(
+                f"{len(self.unidentifiable)} parameter combination(s) this instrument "
+                "and pose plan cannot determine:"
+            )
+            for sv, parts in self.unidentifiable[:12]:
+                lines.append(
+                    f"  - (singular value {sv:.1e}) "
+                    + " ".join(f"{w:+.2f}*({params.short_label(n)})" for n, w in parts)
+                )
+            if len(self.unidentifiable) > 12:
+                lines.append(f"  ... and {len(self.unidentifiable) - 12} more")
+        else:
+            lines.append("every fitted parameter is identifiable from these data")
+        return "\n".join(lines)
+
+
+def hardware_table(cal: "Calibration") -> Table:
+    """The fitted table with a fitted spiral lead written back as hardware: `lead` = |lead|,
+    `hand` = its sign (what a table file stores)."""
+    table = cal.table
+    if "spiral" in cal.effects:
+        lead = np.asarray(cal.effects["spiral"].lead)
+        table = replace(table, lead=np.abs(lead), hand=np.where(lead < 0, -1.0, 1.0))
+    return table
+
+
+def sigma_rms(weighted: np.ndarray, mask: np.ndarray) -> float:
+    """RMS of σ-normalised residuals (N, 6) over the measured cells `mask` (N, 6)."""
+    r = np.asarray(weighted)[mask]
+    return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+
+
+def zero_steps(nominal: Table, effects: dict, free, bases: dict) -> dict:
+    """θ0: a zero step for every free parameter block (joint sets in their basis)."""
+    return {
+        name: jnp.zeros(bases[name].shape[1])
+        if name in params.JOINTS
+        else jnp.zeros_like(params.get(nominal, effects, name))
+        for name in free
+    }
+
+
+def parameter_keys(layout: Layout, theta0: dict, bases: dict) -> tuple[list, list]:
+    """(keys, labels) of the flat parameters, in `ravel_pytree` order (dict keys sorted).
+    Keys are stable (`zero_lengths[3]`, `base_joints.g7` for a joint set's coordinate in its
+    basis, `frame[1].yaw`, `target.z`); labels are physical (`jaxtable._params.label`), a
+    gauge coordinate's label naming the joint displacements it moves."""
+    keys, labels = [], []
+    for key in sorted(theta0):
+        v = np.asarray(theta0[key])
+        if key in params.JOINTS:
+            basis = np.asarray(bases[key])
+            gauged = key in layout.gauge
+            for i in range(v.size):
+                keys.append(f"{key}.g{i + 1}")
+                labels.append(
+                    params.gauge_label(key, i, basis)
+                    if gauged
+                    else params.label(params.element_keys(key, (6, 3))[i])
+                )
+            continue
+        if key == "frame":
+            new = [
+                f"frame[{s + 1}].{params.POSE[d]}"
+                for s in range(v.shape[0])
+                for d in layout.frame_dofs
+            ]
+        elif key == "target":
+            new = [f"target.{params.POSE[d]}" for d in layout.target_dofs]
+        else:
+            new = params.element_keys(key, v.shape)
+        keys += new
+        labels += [params.label(k) for k in new]
+    return keys, labels
+
+
+def data_context(data: Measurements, cmd: np.ndarray, uses=("temperature", "mass")) -> Context:
+    """Batched context (N,) of the data's stops: direction of travel from the row order of
+    the commanded lengths `cmd` (N, 6), temperature (20 °C if absent), payload (0 kg if
+    absent), session index.
+
+    A blank temperature (payload) cell where the model uses that column (`uses` holds
+    "temperature" for the thermal effect, "mass" for compliance) is refused with its row
+    named: never a NaN that surfaces as a failed solve. Where no effect of the model uses the
+    column, blanks take the reference value (20 °C, 0 kg), which no effect then reads."""
+    n = len(data)
+    columns = {
+        "temperature": (data.temperature, 20.0, "temperature", "thermal"),
+        "mass": (data.payload, 0.0, "payload", "compliance"),
+    }
+    values = {}
+    for need, (col, ref, name, effect) in columns.items():
+        if col is None:
+            values[need] = np.full(n, ref)
+            continue
+        v = np.asarray(col, float)
+        blank = ~np.isfinite(v)
+        if blank.any() and need in uses:
+            rows = (np.flatnonzero(blank) + 1).tolist()
+            raise ValueError(
+                f"row {rows[0]}, column '{name}': blank cell, and the {effect} effect uses "
+                f"that column ({len(rows)} blank row(s): {rows[:10]}); fill it or drop the "
+                f"row(s)"
+            )
+        values[need] = np.where(blank, ref, v)
+    return Context(
+        directions(cmd), values["temperature"], values["mass"], np.asarray(data.session_index)
+    )
+
+
+def used_columns(effects: dict, free) -> set:
+    """Data columns the model reads ("temperature", "session", "mass"): the `needs` of every
+    effect that is fitted (a field in `free`) or not at its null value."""
+    out = set()
+    for name, eff in effects.items():
+        fitted = any(params.split(f)[0] == name for f in free)
+        active = any(np.any(np.asarray(x) != 0) for x in jax.tree.leaves(eff))
+        if fitted or active:
+            out |= set(type(eff).needs)
+    return out
+
+
+COMPENSATION_UNKNOWN = (
+    "the data have no commanded lengths (cmd_l1..cmd_l6) and the table has a screw lead, so "
+    "the commands depend on whether the controller compensated the passive spiral term "
+    "(0.26 mm apart on the paper's x stroke): say which with --compensated or "
+    "--uncompensated (compensated=True / False in Python)"
+)
+
+
+def commanded_lengths(nominal: Table, data: Measurements, compensated: bool | None) -> np.ndarray:
+    """(N, 6) joint-to-joint lengths the controller commanded: the file's cmd_l columns, or
+    the nominal inverse kinematics of the commanded poses, compensated for the spiral term
+    when `compensated`. One rule for every verb: without cmd_l columns on a table with a
+    lead, `compensated` must be stated (ValueError otherwise)."""
+    if data.cmd_lengths is not None:
+        return np.asarray(data.cmd_lengths, float)
+    if compensated is None:
+        if np.any(np.asarray(nominal.lead) != 0):
+            raise ValueError(COMPENSATION_UNKNOWN)
+        compensated = False
+    return np.asarray(actuator_command(nominal, data.cmd_pose, compensated, check=False))
+
+
+def make_problem(
+    nominal: Table,
+    data: Measurements,
+    effects,
+    bases,
+    compensated: bool | None = None,
+    uses=("temperature", "mass"),
+    sigma0: np.ndarray | None = None,
+):
+    """Arrays of a calibration problem; refuses commands outside the stroke (row, leg named).
+    `sigma0` (N, 6): σ of the measured cells the weights start from (default: the file's σ
+    where stated, else `noise.DEFAULT_SIGMA`)."""
+    mask = np.isfinite(data.measured)
+    cmd = commanded_lengths(nominal, data, compensated)
+    lo, hi = (float(v) for v in np.asarray(nominal.stroke))
+    bad = np.argwhere(~np.asarray(in_stroke(nominal, cmd)) | ~np.isfinite(cmd))
+    if len(bad):
+        r, leg = bad[0]
+        raise ValueError(
+            f"row {r + 1}: commanded length of leg {leg + 1} ({cmd[r, leg]:.3f} mm) is outside "
+            f"the stroke [{lo}, {hi}]" + (f" ({len(bad)} such cells)" if len(bad) > 1 else "")
+        )
+    sigma = noise_model(data.measured, data.sigma).sigma0 if sigma0 is None else sigma0
+    return Problem(
+        nominal=nominal,
+        start=nominal,
+        effects=effects,
+        s=jnp.asarray(cmd - np.asarray(nominal.zero_lengths)),
+        guess=jnp.asarray(data.cmd_pose),
+        measured=jnp.asarray(np.where(mask, data.measured, 0.0)),
+        weight=jnp.asarray(np.where(mask, 1.0 / np.where(mask, sigma, 1.0), 0.0)),
+        session=jnp.asarray(data.session_index),
+        bases={n: jnp.asarray(b) for n, b in bases.items()},
+        ctx=data_context(data, cmd, uses),
+    )
+
+
+def validate(
+    cal: "Calibration", nominal: Table, data: Measurements, compensated: bool | None = None
+) -> dict:
+    """RMS residual per measured column (mm / rad) of the calibrated model on `data` (e.g.
+    held-out poses), in the calibration's instrument frames (sessions matched by order of
+    first appearance)."""
+    problem = make_problem(nominal, data, cal.effects_nominal, cal.bases, compensated)
+    res = np.asarray(residual_jit(cal.theta, (problem, cal.layout))).reshape(-1, 6)
+    mask = np.isfinite(data.measured)
+    w = np.asarray(problem.weight)
+    phys = np.where(mask, res / np.where(mask, w, 1.0), np.nan)
+    return {
+        c: float(np.sqrt(np.nanmean(phys[:, k] ** 2)))
+        for k, c in enumerate("x y z roll pitch yaw".split())
+        if mask[:, k].any()
+    }
+
+
+@dataclass
+class Setup:
+    """One data set prepared for fitting: the problem arrays, the parameter layout, the start
+    θ0 (a dict of blocks), flat parameter `names` (stable keys) and `labels` (physical
+    names for reports), the measured mask (N, 6) and the effects (all at their start
+    values)."""
+
+    problem: Problem
+    layout: Layout
+    theta0: dict
+    names: list
+    mask: np.ndarray
+    effects: dict
+    labels: list = field(default_factory=list)
+    noise: NoiseModel | None = None
+
+    def free_mask(self, free) -> np.ndarray:
+        """(P,) 0/1 over the flat parameters: the blocks named in `free` plus the nuisance
+        frame/target blocks."""
+        keep = tuple(free) + ("frame", "target")
+        out = []
+        for key in sorted(self.theta0):
+            on = key in keep
+            out += [1.0 if on else 0.0] * int(np.asarray(self.theta0[key]).size)
+        return np.asarray(out)
+
+
+def setup(
+    nominal: Table,
+    data: Measurements,
+    free=params.GEOMETRY,
+    *,
+    effects=None,
+    compensated: bool | None = None,
+    estimate_frame: bool = True,
+    sigma: dict | None = None,
+) -> Setup:
+    """Prepare `data` for fitting the `free` parameters of `nominal` + `effects` (see
+    `calibrate`). Every block in `free` gets a θ entry (zero = the start value). `sigma`:
+    {column: σ (mm / rad)} stated by the user (overrides the file's σ columns)."""
+    free = tuple(free)
+    if not np.isfinite(data.measured).any():
+        raise ValueError("no measured values in the data")
+    mask = np.isfinite(data.measured)
+    col_mask = mask.any(0)
+    frame_dofs, target_dofs = nuisance_dofs(col_mask) if estimate_frame else ((), ())
+    gauge = []
+    if len(frame_dofs) == 6 and "base_joints" in free:
+        gauge.append("base_joints")
+    if len(target_dofs) >= 3 and "platform_joints" in free:
+        gauge.append("platform_joints")
+    layout = Layout(free, frame_dofs, target_dofs, len(data.sessions), tuple(gauge))
+    eff = resolve_effects(nominal, effects)
+    bases = {
+        n: (complement_basis(np.asarray(getattr(nominal, n))) if n in gauge else np.eye(18))
+        for n in JOINTS
+    }
+    params.check(nominal, eff, free)
+    noise = noise_model(data.measured, data.sigma, sigma)
+    problem = make_problem(
+        nominal, data, eff, bases, compensated, used_columns(eff, free), noise.sigma0
+    )
+    theta0 = zero_steps(nominal, eff, free, bases)
+    if frame_dofs:
+        theta0["frame"] = jnp.asarray(initial_frames(data, frame_dofs)[:, list(frame_dofs)])
+    if target_dofs:
+        theta0["target"] = jnp.zeros(len(target_dofs))
+    keys, labels = parameter_keys(layout, theta0, bases)
+    return Setup(problem, layout, theta0, keys, mask, eff, labels, noise)
+
+
+NOISE = ("estimate", "fixed")
+
+
+def fit(
+    st: Setup,
+    free_mask=None,
+    rows=None,
+    *,
+    noise: str = "estimate",
+    rtol: float = 1e-8,
+    atol: float = 1e-8,
+    max_steps: int = 200,
+    identifiability_tol: float = 1e-6,
+    theta0=None,
+    method: str = "gauss_newton",
+    weight=None,
+) -> "Calibration":
+    """Fit the parameters of `st` where `free_mask` (P,) is 1 (default: all), using only the
+    data rows `rows` (bool (N,) or indices; default all: held-out rows get zero weight, so
+    every fold and nested model of one data set reuses one compilation). `method`:
+    "gauss_newton" (optimistix GaussNewton, truncated-SVD least-squares steps; default,
+    falling back to LM when a step leaves the region where the forward kinematics converge)
+    or "levenberg_marquardt" (optimistix LM: same optimum, several times more steps here).
+
+    `noise`: "estimate" (default) refits with the σ of each noise group scaled until the
+    residuals agree with them (variance-component estimation, `jaxtable._calibration.noise`;
+    the stated σ, if any, only fix relative weights within a group, and the result says
+    whether they agree with the data); "fixed": the weights as they are (the stated σ, or
+    `weight` (N, 6) = 1/σ when given)."""
+    if noise not in NOISE:
+        raise ValueError(f"noise must be one of {NOISE}; got {noise!r}")
+    base = np.asarray(st.problem.weight) if weight is None else np.asarray(weight, float)
+    measured_rows = st.mask.any(axis=1)
+    use = measured_rows.copy()
+    if rows is not None:
+        use = np.zeros(len(st.mask), bool)
+        use[np.asarray(rows)] = True
+        use &= measured_rows
+    cells = st.mask & use[:, None]
+    nm = st.noise or noise_model(
+        np.where(st.mask, 0.0, np.nan), np.where(st.mask, 1.0 / np.where(base > 0, base, 1), 0)
+    )
+    G = len(nm.names)
+    scale = np.ones(G)
+    kw = dict(
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        identifiability_tol=identifiability_tol,
+        method=method,
+    )
+    groups = np.asarray(nm.groups)
+    start = theta0
+    cal, red_g = None, np.zeros(G)
+    iterations = 0
+    for _ in range(8 if noise == "estimate" else 1):
+        w = np.where(groups >= 0, base / scale[np.maximum(groups, 0)], 0.0)
+        cal = _fit_once(st, free_mask, use, w, theta0=start, **kw)
+        iterations += 1
+        red = noise_redundancy(cal.jacobian, identifiability_tol)
+        s_new, red_g = group_scales(cal.residual, red, groups, cells)
+        if noise != "estimate":
+            break
+        scale = scale * s_new
+        start = cal.theta  # warm start the refit
+        if np.all(np.abs(s_new - 1.0) < 0.01):
+            break
+    # σ / σ0 the last fit's residuals imply (its weights hold it to 1 % when estimated)
+    implied = scale if noise == "estimate" else s_new
+    est = noise_estimate(nm, implied, red_g, cells, noise == "estimate")
+    cal.noise = dataclasses.replace(est, iterations=iterations)
+    return cal
+
+
+def _fit_once(
+    st: Setup,
+    free_mask,
+    use: np.ndarray,
+    weight: np.ndarray,
+    *,
+    rtol: float,
+    atol: float,
+    max_steps: int,
+    identifiability_tol: float,
+    theta0,
+    method: str,
+) -> "Calibration":
+    """One weighted fit (see `fit`): rows where `use` is False and cells with weight 0 do not
+    count; `weight` (N, 6) = 1/σ."""
+    problem, layout = st.problem, st.layout
+    problem = eqx.tree_at(lambda p: p.weight, problem, jnp.asarray(weight))
+    theta0 = st.theta0 if theta0 is None else theta0
+    flat0, _ = ravel_pytree(theta0)
+    fm = np.ones(flat0.shape[0]) if free_mask is None else np.asarray(free_mask, float)
+    measured_rows = st.mask.any(axis=1)  # a row with nothing measured is skipped
+    if not use.all():
+        problem = eqx.tree_at(
+            lambda p: p.weight, problem, problem.weight * jnp.asarray(use, float)[:, None]
+        )
+    mask = st.mask & use[:, None]
+    before = np.asarray(residual_jit(theta0, (problem, layout))).reshape(-1, 6)
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    args = (problem, layout, theta0, jnp.asarray(fm), rtol, atol, max_steps)
+    value, converged, steps, J, solved = _solve(*args, method, identifiability_tol)
+    if method == "gauss_newton" and not (bool(converged) and np.all(np.asarray(solved)[use])):
+        # undamped steps along weakly determined directions left the region where the
+        # forward kinematics converge (e.g. an x-only instrument on a line): LM's damping
+        # keeps them bounded
+        value, converged, steps, J, solved = _solve(
+            *args, "levenberg_marquardt", identifiability_tol
+        )
+    if not np.all(np.asarray(solved)[use]):
+        bad = np.flatnonzero(~np.asarray(solved) & use)
+        raise RuntimeError(
+            f"forward kinematics failed at the fitted parameters for row(s) "
+            f"{(bad + 1).tolist()[:10]}"
+        )
+    after = np.asarray(residual_jit(value, (problem, layout))).reshape(-1, 6)
+    on = fm > 0
+    J = np.asarray(J)[:, on]
+    flat = np.asarray(ravel_pytree(value)[0])[on]
+    names = [n for n, k in zip(st.names, on) if k]
+    labels = [n for n, k in zip(st.labels or st.names, on) if k]
+    # identifiability: SVD of the column-scaled Jacobian
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1.0
+    U, sv, Vt = np.linalg.svd(J / scale, full_matrices=False)
+    ok = sv > identifiability_tol * sv[0]
+    unident = []
+    for k in np.flatnonzero(~ok):
+        v = Vt[k] / np.abs(Vt[k]).max()
+        top = np.argsort(-np.abs(v))[:4]
+        unident.append(
+            (float(sv[k] / sv[0]), [(labels[i], float(v[i])) for i in top if abs(v[i]) > 0.05])
+        )
+    inv_s2 = np.where(ok, 1.0 / np.where(ok, sv, 1.0) ** 2, 0.0)
+    cov = (Vt.T * inv_s2) @ Vt / np.outer(scale, scale)
+    std = np.sqrt(np.diag(cov))
+    null_weight = (Vt[~ok] ** 2).sum(0)
+    std = np.where(null_weight > 1e-6, np.inf, std)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(np.sqrt(np.diag(cov)), np.sqrt(np.diag(cov)))
+    table, effects_fit, frame, target = build_model(problem, layout, value)
+    cols = [c for k, c in enumerate(COLUMNS) if mask[:, k].any()]
+    sig = np.where(mask, 1.0 / np.where(mask, np.asarray(problem.weight), 1.0), np.nan)
+
+    def rms(res):
+        r = res * sig  # back to physical units
+        return {
+            c: float(np.sqrt(np.nanmean(np.where(mask[:, k], r[:, k], np.nan) ** 2)))
+            for k, c in enumerate(COLUMNS)
+            if c in cols
+        }
+
+    n_obs = int(mask.sum())
+    return Calibration(
+        table=table,
+        effects=effects_fit,
+        frame=np.asarray(frame),
+        target=np.asarray(target),
+        names=names,
+        labels=labels,
+        rms_sigma_before=sigma_rms(before, mask),
+        rms_sigma_after=sigma_rms(after, mask),
+        value=flat,
+        std=std,
+        correlation=corr,
+        singular_values=sv / sv[0],
+        unidentifiable=unident,
+        rms_before=rms(before),
+        rms_after=rms(after),
+        chi2=float((after[use] ** 2).sum()),
+        dof=n_obs - int(ok.sum()),
+        converged=bool(converged),
+        rows_skipped=int((~measured_rows).sum()),
+        weight=np.asarray(weight),
+        steps=int(steps),
+        layout=layout,
+        bases=st.problem.bases,
+        theta=value,
+        effects_nominal=st.effects,
+        rank=int(ok.sum()),
+        n_obs=n_obs,
+        residual=after,
+        covariance=cov,
+        jacobian=J,
+    )
+
+
+def calibrate(
+    nominal: Table,
+    data: Measurements,
+    free=params.GEOMETRY,
+    *,
+    effects=None,
+    compensated: bool | None = None,
+    estimate_frame: bool = True,
+    sigma: dict | None = None,
+    noise: str = "estimate",
+    identifiability_tol: float = 1e-6,
+    rtol: float = 1e-8,
+    atol: float = 1e-8,
+    max_steps: int = 200,
+    method: str = "gauss_newton",
+) -> "Calibration":
+    """Fit the `free` parameters (table leaves: base_joints, platform_joints, zero_lengths,
+    ...; effect fields: "spiral.lead", ...) of the model `nominal` + `effects` (default: its
+    hardware effects) to `data`.
+
+    Commanded lengths come from the data, or (absent) from the nominal inverse kinematics,
+    compensated for the spiral term when `compensated` (which must then be stated when the
+    table has a lead: `commanded_lengths`). With `estimate_frame`, the instrument
+    frame of each session and the target offset are estimated (initialised in closed form)
+    over the components the instrument can see, and the joint sets are fitted modulo rigid
+    motions (the gauge). Directions whose scaled singular value is below
+    `identifiability_tol` × the largest are reported as unidentifiable and get std = inf.
+    `sigma`: {column: σ (mm / rad)} stated by the user (else the file's σ columns, if any);
+    `noise`: "estimate" (default: the σ of each group of columns is estimated from the fit,
+    and a stated σ is tested against it) or "fixed" (trust the stated σ); see `fit`.
+    """
+    st = setup(
+        nominal,
+        data,
+        free,
+        effects=effects,
+        compensated=compensated,
+        estimate_frame=estimate_frame,
+        sigma=sigma,
+    )
+    return fit(
+        st,
+        noise=noise,
+        identifiability_tol=identifiability_tol,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        method=method,
+    )

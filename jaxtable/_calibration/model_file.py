@@ -1,0 +1,164 @@
+"""The fitted model file: what a calibration (or a diagnosis) learned, in one TOML file that
+any verb's `--table` reads back and `validate` predicts new data with.
+
+It is a table file (DESIGN.md schema) with three more kinds of table:
+
+    [effects.NAME]                 fitted effect parameters (library and discovered terms)
+    [controller]
+    zero_lengths = [6 values]      the nominal table's L0 (mm): commanded lengths in new data
+                                   convert to actuator extensions s = cmd_l − L0 without the
+                                   nominal file
+    [instrument]
+    target = [x, y, z, roll, pitch, yaw]        target offset on the platform (mm / deg)
+    target_sigma = [...]                        its σ (nan: not estimated, inf: undetermined)
+    [instrument.frames."LABEL"]                 one per session label
+    pose = [x, y, z, roll, pitch, yaw]          pose of the base frame in the instrument frame
+    sigma = [...]
+"""
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import _params as params
+from .._errors import TableFileError
+from .._io import effects_from_dict, effects_to_toml, read_toml, table_from_dict, table_to_toml
+from .._table import Table, check_table
+from .fit import Calibration, hardware_table
+
+
+@dataclass
+class InstrumentFrames:
+    """The instrument's nuisance parameters from a fit (mm / rad): the target offset on the
+    platform, shared by all sessions, and one frame per session label; σ of each component
+    (nan: not estimated, inf: not determined by the data)."""
+
+    target: np.ndarray
+    target_sigma: np.ndarray
+    frames: dict = field(default_factory=dict)
+    frame_sigma: dict = field(default_factory=dict)
+
+
+@dataclass
+class FittedModel:
+    """A fitted model: the table (hardware lead and hand included), its effects (None: the
+    table's hardware effects), the instrument frames and target, and the controller's nominal
+    zero lengths (None: the table's own)."""
+
+    table: Table
+    effects: dict | None = None
+    instrument: InstrumentFrames | None = None
+    nominal_zero_lengths: np.ndarray | None = None
+
+    @property
+    def controller_zero_lengths(self) -> np.ndarray:
+        """L0 the controller converts commanded lengths with (mm, (6,))."""
+        if self.nominal_zero_lengths is not None:
+            return np.asarray(self.nominal_zero_lengths, float)
+        return np.asarray(self.table.zero_lengths, float)
+
+
+def instrument_frames(cal: Calibration, sessions: list[str]) -> InstrumentFrames:
+    """The frames and target of a fit, with σ, keyed by the data's session labels."""
+    std = dict(zip(cal.names, cal.std))
+
+    def sigma(prefix: str, dofs) -> np.ndarray:
+        out = np.full(6, np.nan)
+        for d in dofs:
+            out[d] = std.get(f"{prefix}.{params.POSE[d]}", np.nan)
+        return out
+
+    lay = cal.layout
+    frames = {lab: np.asarray(cal.frame[k], float) for k, lab in enumerate(sessions)}
+    frame_sigma = {lab: sigma(f"frame[{k + 1}]", lay.frame_dofs) for k, lab in enumerate(sessions)}
+    return InstrumentFrames(
+        np.asarray(cal.target, float), sigma("target", lay.target_dofs), frames, frame_sigma
+    )
+
+
+def fitted_model(cal: Calibration, nominal: Table, sessions: list[str]) -> FittedModel:
+    """The model file's content for a fit of data with these session labels."""
+    return FittedModel(
+        hardware_table(cal),
+        dict(cal.effects),
+        instrument_frames(cal, sessions),
+        np.asarray(nominal.zero_lengths, float),
+    )
+
+
+def _fmt(v) -> str:
+    return "[" + ", ".join(repr(float(x)) for x in np.asarray(v, float)) + "]"
+
+
+def model_to_toml(model: FittedModel, header: str = "") -> str:
+    """TOML text of a fitted model (inverse of `load_fitted_model`)."""
+    text = table_to_toml(model.table, header)
+    if model.nominal_zero_lengths is not None:
+        text += "\n[controller]\n"
+        text += f"zero_lengths = {_fmt(model.nominal_zero_lengths)}\n"
+    if model.effects:
+        text += effects_to_toml(model.effects)
+    ins = model.instrument
+    if ins is not None:
+        text += "\n[instrument]\n"
+        text += f"target = {_fmt(params.pose_to_file(ins.target))}\n"
+        text += f"target_sigma = {_fmt(params.pose_to_file(ins.target_sigma))}\n"
+        for label, pose in ins.frames.items():
+            key = label.replace("\\", "\\\\").replace('"', '\\"')
+            text += f'\n[instrument.frames."{key}"]\n'
+            text += f"pose = {_fmt(params.pose_to_file(pose))}\n"
+            sig = ins.frame_sigma.get(label, np.full(6, np.nan))
+            text += f"sigma = {_fmt(params.pose_to_file(sig))}\n"
+    return text
+
+
+def save_fitted_model(model: FittedModel, path, header: str = "") -> Path:
+    """Write `model` as a table file with its `[controller]`, `[effects.NAME]` and
+    `[instrument]` tables; `load_fitted_model` (and any `--table`) reads it back."""
+    check_table(model.table)
+    path = Path(path)
+    path.write_text(model_to_toml(model, header))
+    return path
+
+
+def _vector(doc: dict, key: str, where: str) -> np.ndarray:
+    try:
+        v = np.asarray(doc[key], dtype=float)
+    except (KeyError, TypeError, ValueError):
+        raise TableFileError(f"{where}: '{key}' must be 6 numbers") from None
+    if v.shape != (6,):
+        raise TableFileError(f"{where}: '{key}' must be 6 numbers; got shape {v.shape}")
+    return v
+
+
+def load_fitted_model(path) -> FittedModel:
+    """Read a fitted model file (or a plain table file: then only the table, and effects if
+    it has `[effects.NAME]` tables). Raises TableFileError naming the file and key."""
+    path = Path(path)
+    where = str(path)
+    doc = read_toml(path, TableFileError, "table")
+    table = table_from_dict(doc, where)
+    effects = effects_from_dict(doc, where) if "effects" in doc else None
+    nominal = None
+    if "controller" in doc:
+        nominal = _vector(doc["controller"], "zero_lengths", f"{where}: [controller]")
+    instrument = None
+    if "instrument" in doc:
+        sec = doc["instrument"]
+        w = f"{where}: [instrument]"
+        frames, sigmas = {}, {}
+
+        def vec(d, key, w, default):
+            return params.pose_from_file(_vector(d, key, w)) if key in d else default
+
+        for label, fr in sec.get("frames", {}).items():
+            fw = f'{where}: [instrument.frames."{label}"]'
+            frames[str(label)] = vec(fr, "pose", fw, None)
+            if frames[str(label)] is None:
+                raise TableFileError(f"{fw}: missing 'pose'")
+            sigmas[str(label)] = vec(fr, "sigma", fw, np.full(6, np.nan))
+        target = vec(sec, "target", w, np.zeros(6))
+        tsig = vec(sec, "target_sigma", w, np.full(6, np.nan))
+        instrument = InstrumentFrames(target, tsig, frames, sigmas)
+    return FittedModel(table, effects, instrument, nominal)

@@ -1,0 +1,264 @@
+"""Prediction of measured data with a fitted model (`jaxtable validate`).
+
+For each stop the fitted table, with its effects inside the forward solve, settles at the
+pose q for the commanded lengths (converted to actuator extensions with the controller's
+nominal L0 stored in the model file); the instrument reads q through its frame and the
+target offset. A session label the model knows uses its stored frame, so every row is a
+prediction. A new session (a tracker set up anew) has its frame registered on its first
+`register` rows, target kept from the model, and the rest are predicted; with no `register`
+(default) every row of a new session is used for the registration and the result is a fit,
+not a prediction.
+"""
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+
+from .. import _params as params
+from .._api import forward_solve
+from .._effects import resolve_effects
+from .._forward import platform_radius
+from .._model import length_residual
+from .._rotation import euler_from_matrix, rotation_matrix
+from .._table import Table, replace
+from .fit import (
+    Calibration,
+    commanded_lengths,
+    data_context,
+    initial_frames,
+    nuisance_dofs,
+    used_columns,
+)
+from .fit import validate as column_rms
+from .instruments import observe
+from .measurements import Measurements
+from .model_file import FittedModel, load_fitted_model
+
+
+@dataclass
+class Validation:
+    """Outcome of `validate`.
+
+    - `rows_registered`, `rows_predicted`: counts; `registered` (N,) bool per row;
+    - `rms`: {measured column: RMS of measured − predicted over the predicted rows (over the
+      registered rows when nothing is predicted)}, mm / deg; `leg_rms`: the same for leg
+      lengths (mm: lengths implied by the measured pose through frame, target and geometry,
+      minus the lengths the model says the actuators produced), None unless all six columns
+      are measured;
+    - `frames`: {session label: {"source": "stored" | "registered", "pose": [x, y, z mm,
+      roll, pitch, yaw deg], "rows_registered": n}};
+    - `residual` (N, 6): measured − predicted reading (mm / rad, NaN where not measured);
+      `leg_residual` (N, 6) mm or None; `predicted_pose` (N, 6): the model's pose per stop;
+    - `is_prediction`: False when every row was used to register a frame (a fit).
+    """
+
+    rows_registered: int
+    rows_predicted: int
+    rms: dict
+    leg_rms: float | None
+    frames: dict
+    registered: np.ndarray
+    residual: np.ndarray
+    leg_residual: np.ndarray | None
+    predicted_pose: np.ndarray
+    data: Measurements = field(repr=False, default=None)
+
+    @property
+    def is_prediction(self) -> bool:
+        return self.rows_predicted > 0
+
+    def as_json(self) -> dict:
+        return {
+            "rows_registered": self.rows_registered,
+            "rows_predicted": self.rows_predicted,
+            "prediction": self.is_prediction,
+            "rms": self.rms,
+            "rms_units": {c: ("mm" if c in params.XYZ else "deg") for c in self.rms},
+            "leg_rms": self.leg_rms,
+            "frames": self.frames,
+        }
+
+
+@jax.jit
+def _readings(q, frames, target):
+    return jax.vmap(observe, in_axes=(0, 0, None))(q, frames, target)
+
+
+def _wrap(diff: np.ndarray) -> np.ndarray:
+    out = np.array(diff, float)
+    out[..., 3:] = np.mod(out[..., 3:] + np.pi, 2 * np.pi) - np.pi
+    return out
+
+
+def register_frame(q, measured, target, dofs, start, radius: float) -> np.ndarray:
+    """Instrument frame (6,) that best maps the model's poses `q` (M, 6) with `target` to
+    the `measured` readings (M, 6, NaN = not measured), over the frame components `dofs`,
+    from `start` (6,). Least squares with angles as mm of arc at `radius` (Gauss-Newton,
+    truncated-SVD steps, so components the rows cannot determine stay at `start`)."""
+    mask = np.isfinite(measured)
+    w = np.where(mask, 1.0, 0.0) * np.array([1.0] * 3 + [radius] * 3)
+    m = np.where(mask, measured, 0.0)
+    E = np.eye(6)[:, list(dofs)]
+    q, m, w, E = (jnp.asarray(x) for x in (q, m, w, E))
+    start, target = jnp.asarray(start), jnp.asarray(target)
+
+    def resid(p, _):
+        frame = start + E @ p
+        r = _readings(q, jnp.broadcast_to(frame, q.shape), target) - m
+        r = r.at[:, 3:].set(jnp.mod(r[:, 3:] + jnp.pi, 2 * jnp.pi) - jnp.pi)
+        return (r * w).reshape(-1)
+
+    solver = optx.GaussNewton(rtol=1e-10, atol=1e-10, linear_solver=lx.SVD(rcond=1e-9))
+    sol = optx.least_squares(resid, solver, jnp.zeros(len(dofs)), max_steps=50, throw=False)
+    return np.asarray(start + E @ sol.value)
+
+
+def _measured_pose(reading, frame, target):
+    """Platform pose (6,) whose reading through `frame` and `target` is `reading` (6,)."""
+    RF = rotation_matrix(frame[3:])
+    Rm = rotation_matrix(reading[3:])
+    Rq = RF.T @ Rm @ rotation_matrix(target[3:]).T
+    t = RF.T @ (reading[:3] - frame[:3]) - Rq @ target[:3]
+    return jnp.concatenate([t, euler_from_matrix(Rq)])
+
+
+def validate_model(
+    model: FittedModel,
+    data: Measurements,
+    *,
+    register: int | None = None,
+    compensated: bool | None = None,
+    nominal: Table | None = None,
+) -> Validation:
+    """Predict `data` with a fitted `model` (see the module docstring). `register`: rows at
+    the start of each new session used to register its frame (None: all of them, a fit);
+    `compensated`, `nominal`: only for data without cmd_l columns, the controller's
+    compensation (stated, on a table with a lead) and its nominal table."""
+    if register is not None and register < 1:
+        raise ValueError(f"--register must be a positive number of rows; got {register}")
+    table = model.table
+    effects = resolve_effects(table, model.effects)
+    if data.cmd_lengths is None and nominal is None:
+        raise ValueError(
+            "the data have no commanded lengths (cmd_l1..cmd_l6): pass the controller's "
+            "nominal table (--table) to compute them from the commanded poses"
+        )
+    cmd = commanded_lengths(nominal if nominal is not None else table, data, compensated)
+    ctx = data_context(data, cmd, used_columns(effects, ()))
+    controller = replace(table, zero_lengths=model.controller_zero_lengths)
+    res = forward_solve(
+        table, cmd, effects=effects, guess=data.cmd_pose, nominal=controller, context=ctx
+    )
+    bad = ~np.asarray(res.ok)
+    if bad.any():
+        rows = (np.flatnonzero(bad) + 1).tolist()
+        raise ValueError(
+            f"the model's forward kinematics failed at row(s) {rows[:10]}: "
+            f"{res.reason(int(np.flatnonzero(bad)[0]))}"
+        )
+    q = np.asarray(res.pose)
+    ins = model.instrument
+    target = np.zeros(6) if ins is None else np.asarray(ins.target, float)
+    measured = data.measured
+    mask = np.isfinite(measured)
+    n = len(data)
+    frames = np.zeros((n, 6))
+    registered = np.zeros(n, bool)
+    info = {}
+    radius = float(platform_radius(table))
+    base_reading = np.asarray(_readings(jnp.asarray(q), jnp.zeros((n, 6)), jnp.asarray(target)))
+    for label in data.sessions:
+        rows = np.flatnonzero(data.session == label)
+        if ins is not None and label in ins.frames:
+            frame = np.asarray(ins.frames[label], float)
+            info[label] = {"source": "stored", "rows_registered": 0}
+        else:
+            use = rows if register is None else rows[:register]
+            use = use[mask[use].any(axis=1)]
+            if len(use) == 0:
+                raise ValueError(f"session '{label}': no measured row to register its frame on")
+            dofs, _ = nuisance_dofs(mask[use].any(axis=0))
+            sub = data.subset(use)
+            start = initial_frames(sub, dofs, predicted=base_reading[use])[0]
+            frame = register_frame(q[use], measured[use], target, dofs, start, radius)
+            registered[use] = True
+            info[label] = {"source": "registered", "rows_registered": int(len(use))}
+        frames[rows] = frame
+        info[label]["pose"] = [float(v) for v in params.pose_to_file(frame)]
+    reading = np.asarray(_readings(jnp.asarray(q), jnp.asarray(frames), jnp.asarray(target)))
+    residual = np.where(mask, _wrap(measured - reading), np.nan)
+    measured_rows = mask.any(axis=1)
+    predicted = measured_rows & ~registered
+    scored = predicted if predicted.any() else (measured_rows & registered)
+    if not predicted.any():
+        warnings.warn(
+            "every row was used to register a frame: the result is a fit, not a prediction "
+            "(give --register N to predict the rows after the first N of each new session)",
+            stacklevel=2,
+        )
+    unit = np.array([1.0] * 3 + [np.rad2deg(1.0)] * 3)
+    rms = {
+        c: float(np.sqrt(np.nanmean(residual[scored, k] ** 2)) * unit[k])
+        for k, c in enumerate(params.POSE)
+        if mask[scored, k].any()
+    }
+    leg_residual = leg_rms = None
+    if mask[scored].all():
+        full = mask.all(axis=1)
+        qm = jax.vmap(_measured_pose, in_axes=(0, 0, None))(
+            jnp.asarray(np.where(mask, measured, 0.0)), jnp.asarray(frames), jnp.asarray(target)
+        )
+        s = jnp.asarray(cmd - model.controller_zero_lengths)
+        lr = jax.vmap(lambda qq, ss, c: length_residual(table, effects, qq, ss, c))(qm, s, ctx)
+        leg_residual = np.where(full[:, None], np.asarray(lr), np.nan)
+        leg_rms = float(np.sqrt(np.mean(leg_residual[scored] ** 2)))
+    return Validation(
+        rows_registered=int(registered.sum()),
+        rows_predicted=int(predicted.sum()),
+        rms=rms,
+        leg_rms=leg_rms,
+        frames=info,
+        registered=registered,
+        residual=residual,
+        leg_residual=leg_residual,
+        predicted_pose=q,
+        data=data,
+    )
+
+
+def validate(
+    model,
+    data: Measurements | Table,  # a Table in the deprecated (calibration, nominal, data) form
+    *args,
+    register: int | None = None,
+    compensated: bool | None = None,
+    nominal: Table | None = None,
+):
+    """Predict measured `data` with a fitted model: a `FittedModel`, or the path of a model
+    file (`calibrated_table.toml`, as `jaxtable calibrate` / `diagnose --out` write it).
+    Returns a `Validation` (see `validate_model` for `register`, `compensated`, `nominal`).
+
+    Deprecated form, kept for one release: `validate(calibration, nominal, data,
+    compensated=None)` -> {column: RMS (mm / rad)} in the calibration's frames.
+    """
+    if isinstance(model, Calibration):
+        warnings.warn(
+            "validate(calibration, nominal, data) is deprecated: write the model with "
+            "jaxtable calibrate (or fitted_model) and call validate(model, data)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        held = args[0] if args else None
+        comp = args[1] if len(args) > 1 else compensated
+        return column_rms(model, data, held, comp)
+    if isinstance(model, (str, Path)):
+        model = load_fitted_model(model)
+    if not isinstance(model, FittedModel):
+        raise TypeError(f"validate: model must be a FittedModel or a file path; got {model!r}")
+    return validate_model(model, data, register=register, compensated=compensated, nominal=nominal)

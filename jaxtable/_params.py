@@ -1,0 +1,194 @@
+"""The free-parameter vocabulary: which leaves of a model (table, effects) a fit, a
+sensitivity, a posterior or a tolerance budget may vary, how they are spelled, read and
+replaced, and how their elements are named in reports.
+
+A parameter name is either a table leaf (`"base_joints"`, `"zero_lengths"`, `"lead"`, ...) or
+`"effect.field"` for a field of an effect in the model (`"spiral.lead"`,
+`"lead_scale.eps"`). Element names are of two kinds:
+
+- keys (stable, for code, JSON and lookups): `zero_lengths[3]`, `base_joints[2].y`,
+  `spiral.lead[1]`, and for joint sets fitted modulo rigid motions (the gauge, see
+  `jaxtable._calibration.fit`) `base_joints.g7`;
+- labels (for people): `leg 3 zero length L0`, `base joint 2 y`, `spiral lead, leg 1`, and for
+  a gauge coordinate the joint displacements it moves most (`base joints: non-rigid mode 7
+  [+0.61 joint 3 x, -0.55 joint 4 y, ...]`; `short_label` drops the bracket).
+"""
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from ._effects import EFFECTS
+
+GEOMETRY = ("base_joints", "platform_joints", "zero_lengths")
+"""The 42 geometric parameters (b_i, a_i^p, L0_i): the default free set of every fit."""
+
+PAPER_42 = ("zero_lengths", "platform_joints", "base_joints")
+"""The same 42 in the paper's e_p order [dl (6), da^p (18), db (18)]."""
+
+JOINTS = ("base_joints", "platform_joints")
+"""The joint sets (6, 3): fitted modulo rigid motions when an instrument frame is estimated."""
+
+TABLE_LEAVES = (
+    "base_joints",
+    "platform_joints",
+    "base_axes",
+    "platform_axes",
+    "zero_lengths",
+    "home_height",
+    "lead",
+    "hand",
+)
+"""Table leaves a sensitivity or fit may vary."""
+
+NUISANCE = ("frame", "target")
+"""Instrument parameters estimated with every fit (not model parameters)."""
+
+UNITS = {
+    "lead": "mm/rev",
+    "eps": "",
+    "w": "mm",
+    "a": "mm",
+    "b": "mm",
+    "alpha": "1/K",
+    "flex": "mm/N",
+    "offsets": "mm",
+}
+"""Units of the library effects' fields (field name -> unit)."""
+
+XYZ = ("x", "y", "z")
+POSE = ("x", "y", "z", "roll", "pitch", "yaw")
+
+_LEAF_LABEL = {
+    "base_joints": "base joint",
+    "platform_joints": "platform joint",
+    "base_axes": "base axis",
+    "platform_axes": "platform axis",
+    "zero_lengths": "zero length L0",
+    "lead": "screw lead",
+    "hand": "screw hand",
+    "home_height": "home height",
+}
+
+
+def split(name: str) -> tuple[str | None, str]:
+    """`"effect.field"` -> (effect, field); a table leaf -> (None, leaf)."""
+    effect, dot, field = name.partition(".")
+    return (effect, field) if dot else (None, name)
+
+
+def effect_parameters(effect: str) -> tuple[str, ...]:
+    """The parameter names of a library effect: `("spiral.lead",)`, `("periodic_lead.a",
+    "periodic_lead.b")`, ..."""
+    return tuple(f"{effect}.{f}" for f in EFFECTS[effect].fields)
+
+
+def check(table, effects, names) -> None:
+    """Raise ValueError naming any entry of `names` that is not a parameter of the model
+    (`effects`: a mapping name -> effect Module)."""
+    for name in names:
+        effect, field = split(name)
+        if effect is not None:
+            if effect not in effects:
+                raise ValueError(
+                    f"parameter '{name}': no effect '{effect}' in the model (effects: "
+                    f"{', '.join(sorted(effects)) or 'none'}); pass it in `effects=`"
+                )
+            if not isinstance(getattr(effects[effect], field, None), jax.Array):
+                raise ValueError(
+                    f"parameter '{name}': effect '{effect}' has no array field '{field}'"
+                )
+        elif name not in TABLE_LEAVES:
+            raise ValueError(
+                f"unknown parameter '{name}': use a table leaf ({', '.join(TABLE_LEAVES)}) or "
+                f"'effect.field' (e.g. spiral.lead)"
+            )
+
+
+def get(table, effects, name: str):
+    """The array of parameter `name` in the model (table, effects)."""
+    effect, field = split(name)
+    return getattr(table if effect is None else effects[effect], field)
+
+
+def replace(table, effects, values: dict):
+    """(table, effects) with the parameters named in `values` replaced (name -> array);
+    `effects` is copied, never changed in place. Differentiable (eqx.tree_at)."""
+    model = (table, dict(effects))
+    names = list(values)
+    if not names:
+        return model
+    return eqx.tree_at(
+        lambda m: [get(m[0], m[1], n) for n in names], model, [values[n] for n in names]
+    )
+
+
+def element_keys(name: str, shape: tuple) -> list[str]:
+    """Stable keys of the elements of a parameter of `shape`: legs 1-based,
+    `zero_lengths[3]`, `base_joints[2].y`, `home_height`."""
+    if shape == ():
+        return [name]
+    if len(shape) == 1:
+        return [f"{name}[{i + 1}]" for i in range(shape[0])]
+    cols = XYZ if shape[1] == 3 else tuple(str(j + 1) for j in range(shape[1]))
+    return [f"{name}[{i + 1}].{cols[j]}" for i in range(shape[0]) for j in range(shape[1])]
+
+
+def label(key: str) -> str:
+    """A person's name for an element key: `base_joints[2].y` -> `base joint 2 y`,
+    `zero_lengths[3]` -> `leg 3 zero length L0`, `spiral.lead[1]` -> `spiral lead, leg 1`,
+    `frame[2].yaw` -> `instrument frame (session 2) yaw`, `target.z` -> `target offset z`.
+    Gauge coordinates (`base_joints.g7`) need their basis: see `gauge_label`."""
+    head, bracket, rest = key.partition("[")
+    index, _, comp = rest.partition("]")
+    comp = comp.lstrip(".")
+    if head == "frame":
+        return f"instrument frame (session {index}) {comp}"
+    if key.startswith("target."):
+        return f"target offset {key.partition('.')[2]}"
+    effect, field = split(head)
+    if effect is None:
+        name = _LEAF_LABEL.get(field, field.replace("_", " "))
+        if not bracket:
+            return name
+        if field in JOINTS or field.endswith("_axes"):
+            return f"{name} {index} {comp}".rstrip()
+        return f"leg {index} {name}"
+    base = f"{effect.replace('_', ' ')} {field}"
+    if not bracket:
+        return base
+    if comp.isdigit():  # (rows, 6) fields: one row per later session (rehoming offsets)
+        return f"{base}, session {int(index) + 1}, leg {comp}"
+    return f"{base}, leg {index}" + (f" {comp}" if comp else "")
+
+
+def gauge_label(joint_set: str, index: int, basis: np.ndarray, top: int = 3) -> str:
+    """Label of generalised coordinate `index` (0-based) of a joint set fitted modulo rigid
+    motions: which joint displacements the coordinate moves most. `basis` (18, k): the
+    orthonormal non-rigid basis (column i = the displacement of all 18 coordinates per unit
+    of coordinate i, mm/mm)."""
+    v = np.asarray(basis)[:, index]
+    order = np.argsort(-np.abs(v))[:top]
+    joint = "joint" if joint_set in JOINTS else joint_set
+    parts = [f"{v[k]:+.2f} {joint} {k // 3 + 1} {XYZ[k % 3]}" for k in order]
+    what = _LEAF_LABEL.get(joint_set, joint_set) + "s"
+    return f"{what}: non-rigid mode {index + 1} [{', '.join(parts)}, ...]"
+
+
+def short_label(text: str) -> str:
+    """A label without its bracketed detail (for plot axes and one-line lists)."""
+    return text.split(" [")[0]
+
+
+def pose_to_file(pose) -> np.ndarray:
+    """Poses (..., 6) in mm / rad -> mm / deg (files, CLI, JSON and tables)."""
+    out = np.array(pose, dtype=float)
+    out[..., 3:] = np.rad2deg(out[..., 3:])
+    return out
+
+
+def pose_from_file(pose) -> np.ndarray:
+    """Poses (..., 6) in mm / deg -> mm / rad."""
+    out = np.array(pose, dtype=float)
+    out[..., 3:] = np.deg2rad(out[..., 3:])
+    return out

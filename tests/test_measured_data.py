@@ -1,0 +1,239 @@
+"""Measured data as it comes from a lab: σ absent or misstated, lost cells and empty rows,
+blank context cells, commands without cmd_l columns, instruments that see part of the pose,
+and a fitted model that predicts a new session (the tracker set up anew)."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+import jaxtable as jt
+from jaxtable._calibration.fit import initial_frames, nuisance_dofs
+from jaxtable._calibration.noise import noise_model, parse_sigma
+from jaxtable.cli import main
+
+POS_SIGMA, ANG_SIGMA = 0.005, np.deg2rad(2.0 / 3600.0)  # the tracker6 default
+FRAME_A = (50.0, -30.0, 20.0, np.deg2rad(1.2), np.deg2rad(-0.9), np.deg2rad(2.0))
+FRAME_B = (-20.0, 40.0, 5.0, np.deg2rad(-0.5), np.deg2rad(0.7), np.deg2rad(-1.5))
+TARGET = (30.0, -20.0, 80.0, 0.0, 0.0, 0.0)
+
+
+@pytest.fixture(scope="module")
+def sessions(table):
+    """The true table measured by a 6-D tracker in two sessions (set up anew in between),
+    one target; and the calibration of session A."""
+    true = jt.perturb_table(table, 5)
+    a = jt.simulate(table, true, jt.plan_random(80, 1), jt.tracker6(), frame=FRAME_A,
+                    target=TARGET, session="A", seed=1)  # fmt: skip
+    b = jt.simulate(table, true, jt.plan_random(60, 2), jt.tracker6(), frame=FRAME_B,
+                    target=TARGET, session="B", seed=2)  # fmt: skip
+    cal = jt.calibrate(table, a)
+    return true, a, b, cal
+
+
+# --- σ: absent or misstated ---------------------------------------------------------------
+
+
+def test_sigma_parsing_units_and_errors():
+    s = parse_sigma("x=0.01, y=5um, roll=2arcsec, pitch=0.001, angles=3arcsec")
+    assert s["x"] == 0.01 and s["y"] == pytest.approx(0.005)
+    assert s["yaw"] == pytest.approx(np.deg2rad(3 / 3600))  # the group sets all three angles
+    assert s["pitch"] == pytest.approx(np.deg2rad(3 / 3600))  # later items win
+    with pytest.raises(ValueError, match="does not fit column"):
+        parse_sigma("x=2arcsec")
+    with pytest.raises(ValueError, match="positive"):
+        parse_sigma("z=0")
+    with pytest.raises(ValueError, match="COLUMN=VALUE"):
+        parse_sigma("q=1")
+
+
+def test_noise_groups_treat_lost_cells_as_lost_not_as_another_instrument():
+    m = np.ones((20, 6))
+    m[3] = np.nan  # nothing measured
+    m[5, 2] = np.nan  # one lost cell
+    nm = noise_model(m, None)
+    assert nm.names == ("positions", "angles") and not nm.stated.any()
+    assert nm.groups[5].tolist() == [0, 0, -1, 1, 1, 1] and (nm.groups[3] == -1).all()
+    m[10:, 3:] = np.nan  # half the rows from a 3-D point tracker: a second instrument
+    nm = noise_model(m, np.full((20, 6), 0.01))
+    assert len(nm.names) == 3 and nm.stated.all()
+    assert nm.groups[12].tolist() == [2, 2, 2, -1, -1, -1]
+
+
+def _noise(cal):
+    n = cal.noise
+    return {name: (n.sigma[g], n.scale[g], n.ratio_interval[g], n.consistent[g])
+            for g, name in enumerate(n.names)}  # fmt: skip
+
+
+def test_sigma_absent_or_misstated_gives_the_same_fit_and_the_true_noise(table, sessions):
+    """VCE: the fit and the σ it reports do not depend on the stated σ's scale; the
+    estimate is the noise the data were made with (±3 sd at ~220 dof: ±15 %); a stated σ off
+    by ±25 % is reported inconsistent in the right direction."""
+    _, a, _, cal = sessions
+    truth = {"positions": POS_SIGMA, "angles": ANG_SIGMA}
+    for name, (sigma, _, _, _) in _noise(cal).items():
+        assert abs(sigma / truth[name] - 1) < 0.15, (name, sigma)
+    for factor, verdict in ((0.75, "too small"), (1.25, "too large"), (None, None)):
+        data = dataclasses.replace(a, sigma=None if factor is None else a.sigma * factor)
+        other = jt.calibrate(table, data)
+        np.testing.assert_allclose(other.value, cal.value, atol=1e-4 * np.abs(cal.value).max())
+        np.testing.assert_allclose(other.std, cal.std, rtol=1e-3)
+        for name, (sigma, ratio, (lo, hi), consistent) in _noise(other).items():
+            assert sigma == pytest.approx(_noise(cal)[name][0], rel=1e-3)
+            if factor is None:
+                assert consistent is None and np.isnan(lo)
+            else:
+                assert consistent is False and not lo <= 1 <= hi
+                assert (ratio > 1) == (factor < 1)
+        text = other.report()
+        assert ("no σ stated" in text) if factor is None else (verdict in text)
+
+
+def test_stated_sigma_can_be_trusted_on_request(table, sessions):
+    _, a, _, cal = sessions
+    fixed = jt.calibrate(table, dataclasses.replace(a, sigma=a.sigma * 0.75), noise="fixed")
+    # the fit is the same; its χ² is in the stated σ's units, and the noise it reports is
+    # the estimate's ratio to the stated σ (1/0.75 times the ratio to the true σ)
+    np.testing.assert_allclose(fixed.value, cal.value, atol=1e-4 * np.abs(cal.value).max())
+    np.testing.assert_allclose(fixed.noise.scale, cal.noise.scale / 0.75, rtol=2e-3)
+    expected = np.sum(cal.noise.redundancy * (cal.noise.scale / 0.75) ** 2)
+    assert fixed.chi2 == pytest.approx(expected, rel=0.02)
+    assert fixed.chi2 > 1.3 * fixed.dof
+    assert "used as stated" in fixed.report()
+
+
+# --- lost cells, empty rows, blank context cells -------------------------------------------
+
+
+def test_lost_cells_and_an_empty_row_are_not_measured(table, sessions):
+    _, a, _, cal = sessions
+    m = a.measured.copy()
+    m[3, :] = np.nan
+    m[10, 2] = m[20, 4] = m[33, 0] = np.nan
+    lost = dataclasses.replace(a, measured=m)
+    frames = initial_frames(lost, tuple(range(6)))
+    assert np.all(np.isfinite(frames))
+    other = jt.calibrate(table, lost)
+    assert other.rows_skipped == 1 and "1 row(s) with nothing measured" in other.report()
+    assert other.n_obs == cal.n_obs - 9
+    assert np.all(np.abs(other.value - cal.value) < 0.5 * cal.std)
+
+
+def test_blank_temperature_is_refused_only_where_used(table, sessions):
+    _, a, _, _ = sessions
+    temp = np.full(len(a), 21.0)
+    temp[7] = np.nan
+    data = dataclasses.replace(a, temperature=temp)
+    with pytest.raises(ValueError, match=r"row 8, column 'temperature'.*thermal"):
+        jt.setup(table, data, jt.GEOMETRY + ("thermal.alpha",), effects={"thermal": jt.Thermal()})
+    st = jt.setup(table, data)  # the geometric model does not read it: no NaN anywhere
+    assert np.all(np.isfinite(np.asarray(st.problem.ctx.temperature)))
+
+
+def test_blank_session_cells_continue_the_session_before(tmp_path, sessions):
+    _, a, b, _ = sessions
+    both = jt.Measurements(
+        np.concatenate([a.cmd_pose[:4], b.cmd_pose[:4]]),
+        np.concatenate([a.measured[:4], b.measured[:4]]),
+        np.concatenate([a.cmd_lengths[:4], b.cmd_lengths[:4]]),
+        session=np.array(["", "A", "", "", "B", "", "", ""]),
+    )
+    path = tmp_path / "blank.csv"
+    jt.save_measurements(both, path)
+    assert jt.load_measurements(path).session.tolist() == ["A"] * 4 + ["B"] * 4
+
+
+# --- commands without cmd_l ------------------------------------------------------------------
+
+
+def test_commands_without_cmd_l_need_the_compensation_stated(table, sessions, tmp_path, capsys):
+    _, a, _, _ = sessions
+    bare = dataclasses.replace(a, cmd_lengths=None)
+    with pytest.raises(ValueError, match="--compensated or --uncompensated"):
+        jt.setup(table, bare)
+    st = jt.setup(table, bare, compensated=True)
+    expected = np.asarray(jt.actuator_command(table, a.cmd_pose, compensated=True))
+    np.testing.assert_allclose(np.asarray(st.problem.s) + np.asarray(table.zero_lengths),
+                               expected, atol=1e-9)  # fmt: skip
+    rigid = jt.setup(table, bare, compensated=False)
+    assert np.abs(np.asarray(rigid.problem.s) - np.asarray(st.problem.s)).max() > 0.1  # mm
+    path = tmp_path / "bare.csv"
+    jt.save_measurements(bare, path)
+    for verb in ("calibrate", "diagnose"):
+        assert main([verb, str(path), "--out", str(tmp_path / verb)]) == 2
+        assert "--compensated or --uncompensated" in capsys.readouterr().err
+
+
+# --- partial instruments ---------------------------------------------------------------------
+
+
+def test_instruments_get_the_frame_dofs_they_can_see():
+    def dofs(cols):
+        m = np.zeros(6, bool)
+        m[list(cols)] = True
+        return nuisance_dofs(m)
+
+    # x only: an offset along x and the beam's tilts about y and z (z and y motion leak in)
+    assert dofs([0]) == ((0, 4, 5), ())
+    assert dofs([0, 1]) == ((0, 1, 3, 4, 5), ())  # no z offset
+    assert dofs([3, 4, 5]) == ((3, 4, 5), (3, 4, 5))  # angles only: rotations
+    assert dofs([0, 1, 2]) == (tuple(range(6)), (0, 1, 2))  # point tracker
+    assert dofs(range(6)) == (tuple(range(6)), tuple(range(6)))
+
+
+# --- the fitted model file and validate -----------------------------------------------------
+
+
+def test_model_file_round_trip(table, sessions, tmp_path):
+    _, a, _, cal = sessions
+    model = jt.fitted_model(cal, table, a.sessions)
+    path = jt.save_fitted_model(model, tmp_path / "model.toml")
+    back = jt.load_fitted_model(path)
+    np.testing.assert_allclose(back.instrument.frames["A"], cal.frame[0], atol=1e-12)
+    np.testing.assert_allclose(back.instrument.target, cal.target, atol=1e-12)
+    assert np.all(np.isfinite(back.instrument.target_sigma))  # a 6-D tracker sees all of it
+    np.testing.assert_allclose(back.nominal_zero_lengths, np.asarray(table.zero_lengths))
+    np.testing.assert_allclose(
+        np.asarray(back.table.base_joints), np.asarray(cal.table.base_joints)
+    )
+    assert jt.load_table(path).name == table.name  # any verb's --table reads it
+
+
+def test_validate_predicts_a_new_session_after_registering_its_frame(table, sessions, tmp_path):
+    true, a, b, cal = sessions
+    model = jt.fitted_model(cal, table, a.sessions)
+    v = jt.validate(model, b, register=15)
+    assert v.rows_registered == 15 and v.rows_predicted == 45 and v.is_prediction
+    assert v.frames["B"]["source"] == "registered"
+    # the tracker's noise is what is left: within 1.4× its σ (about 3 sd at 45 rows)
+    for c in "xyz":
+        assert v.rms[c] < 1.4 * POS_SIGMA, v.rms
+    for c in ("roll", "pitch", "yaw"):
+        assert v.rms[c] < 1.4 * np.rad2deg(ANG_SIGMA), v.rms
+    assert v.leg_rms < 1.4 * POS_SIGMA * 1.5
+    # the registered frame is the true one up to the gauge (µm, arcsec)
+    np.testing.assert_allclose(v.frames["B"]["pose"][:3], FRAME_B[:3], atol=0.5)
+    # a known session uses its stored frame: every row predicted
+    va = jt.validate(model, a)
+    assert va.rows_registered == 0 and va.frames["A"]["source"] == "stored"
+    # without --register every row of a new session registers: a fit, said so
+    with pytest.warns(UserWarning, match="fit, not a prediction"):
+        vf = jt.validate(model, b)
+    assert vf.rows_predicted == 0 and not vf.is_prediction
+
+
+def test_validate_cli_writes_json_report_and_figures(table, sessions, tmp_path):
+    _, a, b, cal = sessions
+    path = jt.save_fitted_model(jt.fitted_model(cal, table, a.sessions), tmp_path / "m.toml")
+    jt.save_measurements(b, tmp_path / "b.csv")
+    out = tmp_path / "val"
+    code = main(["validate", str(path), str(tmp_path / "b.csv"), "--register", "10",
+                 "--json", str(tmp_path / "v.json"), "--out", str(out)])  # fmt: skip
+    assert code == 0
+    doc = json.loads((tmp_path / "v.json").read_text())
+    assert {"rows_registered", "rows_predicted", "rms", "leg_rms", "frames"} <= set(doc)
+    assert doc["rows_registered"] == 10 and doc["rows_predicted"] == 50
+    for name in ("report.md", "residuals_by_stop.png", "residuals_by_pose.png"):
+        assert (out / name).stat().st_size > 0
