@@ -1,17 +1,16 @@
 """Performance of jaxtable against numpy and scipy baselines measured in the same run.
 
-Run:  python studies/benchmark.py     (about 6 minutes on 2 cores; writes
-      results/benchmark.json and results/benchmark.md; same as `jaxtable bench --out results`)
+Run:  python studies/benchmark.py [--quick]   (about 6 minutes on 2 cores; writes
+      results/benchmark.json and results/benchmark.md; same as `python -m benchmarks` and
+      `jaxtable bench --out results`). The benchmark itself lives in `benchmarks/`.
 """
 
 import sys
 from pathlib import Path
 
-import jaxtable as jt
-from jaxtable._bench import markdown, run_benchmark, write
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.__main__ import main  # noqa: E402
 
 if __name__ == "__main__":
-    out = Path(__file__).resolve().parents[1] / "results"
-    r = run_benchmark(jt.reference_table(), quick="--quick" in sys.argv)
-    print(markdown(r))
-    write(r, out)
+    sys.exit(main(sys.argv[1:]))

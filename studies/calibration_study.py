@@ -12,14 +12,16 @@ nuisance, joints modulo rigid motions):
 
 Reported per case: fitted and identifiable parameter counts; held-out RMS of the same
 instrument on random workspace poses, before (nominal table, best instrument frame) and
-after calibration (`validate`); the TRUE pose error over random workspace poses (exact
-forward kinematics of the true table vs the calibrated one for the nominal controller's
-commands), absolute and as a motion error (after the best constant frame/target transform,
-which no instrument in an unknown frame can see and an IMU test does not depend on);
-runtime.
+after calibration (`validate` of the `fitted_model`); the TRUE pose error over random
+workspace poses (exact forward kinematics of the true table vs the calibrated one for the
+nominal controller's commands), absolute and as a motion error (after the best constant
+frame/target transform, which no instrument in an unknown frame can see and an IMU test does
+not depend on); runtime.
 
-Run:  python studies/calibration_study.py [--quick]
-      (writes results/calibration_study.md and results/calibration_study.png)
+Pose errors are `jaxtable.pose_error` (translation difference, rotation vector).
+
+Run:  python studies/calibration_study.py [--quick] [--out DIR]
+      (writes calibration_study.md and calibration_study.png into DIR, default results/)
 """
 
 import argparse
@@ -29,19 +31,15 @@ from pathlib import Path
 import numpy as np
 
 import jaxtable as jt
-from jaxtable._calibrate import fit, setup, validate
-from jaxtable._forward import angle_scale
-from jaxtable._instrument import interferometer, point_tracker, tracker6
-from jaxtable._poses import align_pose_errors, compare_with_random, pose_jacobians
-from jaxtable._simulate import perturb_table, plan_random, plan_x_line, simulate
 
-OUT = Path(__file__).resolve().parents[1] / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
+JOINT_SIGMA, ZERO_SIGMA = 0.010, 0.050  # the simulated truth's errors (mm)
 FRAME = (50.0, -30.0, 20.0, np.deg2rad(1.2), np.deg2rad(-0.9), np.deg2rad(2.0))
 FRAME_X = (50.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # an interferometer aligned with x, offset
 TARGET = (30.0, -20.0, 80.0, 0.0, 0.0, 0.0)
 ARCSEC = 180 * 3600 / np.pi
 COLS = ("x", "y", "z", "roll", "pitch", "yaw")
-FREE = ("base_joints", "platform_joints", "zero_lengths")
+FREE = jt.GEOMETRY
 
 
 def fmt_cols(d: dict) -> str:
@@ -59,27 +57,67 @@ def rms3(e: np.ndarray) -> tuple[float, float]:
     )
 
 
+def true_errors(actual, predicted) -> np.ndarray:
+    """Pose errors (Q, 6) of the `actual` poses against the `predicted` ones (both (Q, 6),
+    mm / rad): `jaxtable.pose_error` (translation mm, rotation vector rad)."""
+    return np.asarray(jt.pose_error(np.asarray(actual), np.asarray(predicted)))
+
+
+def motion_errors(poses, errors, radius) -> np.ndarray:
+    """`errors` (pose_error, rotation vector) at `poses` after removing the best constant
+    base-frame and platform-target transform. `align_pose_errors` works in Euler-angle
+    increments (the instruments' readings), so the rotation part goes there through the Euler
+    rate matrix E (rotation vector = E @ Euler increments, to first order) and back."""
+    E = np.stack([np.asarray(jt.euler_rate_matrix(q[3:])) for q in np.asarray(poses)])
+    errors = np.asarray(errors, float)
+    euler = np.concatenate([errors[:, :3], np.linalg.solve(E, errors[:, 3:, None])[..., 0]], 1)
+    aligned = jt.align_pose_errors(poses, euler, radius)
+    return np.concatenate([aligned[:, :3], (E @ aligned[:, 3:, None])[..., 0]], 1)
+
+
+def noise_ratio(cal) -> str:
+    """The fit's noise estimate per group as estimated σ / stated σ (`Calibration.noise`);
+    χ²/dof at the stated σ where the fit did not estimate it."""
+    est = getattr(cal, "noise", None)
+    if est is None or not getattr(est, "estimated", False):
+        return f"χ²/dof {cal.chi2 / max(cal.dof, 1):.2f}"
+    return ", ".join(
+        f"{n} {float(sig) / float(st):.2f}" if np.isfinite(st) else f"{n} (no stated σ)"
+        for n, sig, st in zip(est.names, est.sigma, est.stated_sigma)
+    )
+
+
+def held_out_rms(cal, nominal, sessions, held) -> dict:
+    """RMS of held-out measured − predicted per column (mm / rad) for the fitted model of
+    `cal` (calibration data with session labels `sessions`): `jaxtable.validate` of
+    `jaxtable.fitted_model`, the held-out rows in the calibration's instrument frame (same
+    session label, so every row is a prediction)."""
+    v = jt.validate(jt.fitted_model(cal, nominal, list(sessions)), held)
+    return {c: (x if c in COLS[:3] else np.deg2rad(x)) for c, x in v.rms.items()}
+
+
 def prepare(nominal, true, instrument, poses, frame, target, held, work, q_true, seed):
     """Simulated calibration and held-out data, the fit setup (42 parameters + nuisance) and
     the "before" state: the nominal table with the best instrument frame / target (the
     first call, which compiles the fit for this data shape)."""
-    data = simulate(nominal, true, poses, instrument, frame=frame, target=target, seed=seed)
+    data = jt.simulate(nominal, true, poses, instrument, frame=frame, target=target, seed=seed)
     t0 = time.perf_counter()
-    st = setup(nominal, data, FREE)
-    cal0 = fit(st, free_mask=st.free_mask(()))
+    st = jt.setup(nominal, data, FREE)
+    cal0 = jt.fit(st, free_mask=st.free_mask(()))
     t_first = time.perf_counter() - t0
-    hd = simulate(nominal, true, held, instrument, frame=frame, target=target, seed=seed + 1)
-    e_before = q_true - work
-    radius = float(angle_scale(nominal))
+    hd = jt.simulate(nominal, true, held, instrument, frame=frame, target=target, seed=seed + 1)
+    e_before = true_errors(q_true, work)
+    radius = float(jt.platform_radius(nominal))
     return {
         "st": st,
+        "sessions": data.sessions,
         "hd": hd,
         "instrument": instrument.name,
         "poses": len(poses),
         "t_first": t_first,
-        "held_before": validate(cal0, nominal, hd),
+        "held_before": held_out_rms(cal0, nominal, data.sessions, hd),
         "abs_before": rms3(e_before),
-        "motion_before": rms3(align_pose_errors(work, e_before, radius)),
+        "motion_before": rms3(motion_errors(work, e_before, radius)),
     }
 
 
@@ -93,21 +131,21 @@ def run_case(label, prep, nominal, work, q_true, blocks=FREE):
     t0 = time.perf_counter()
     note = ""
     try:
-        cal = fit(st, free_mask=mask)
+        cal = jt.fit(st, free_mask=mask)
     except RuntimeError as err:  # e.g. forward kinematics failing at the fitted parameters
         # the default solver failed: say so, and show what Levenberg-Marquardt gives
         note = f"default fit failed ({str(err).splitlines()[0]}); Levenberg-Marquardt shown"
         print(f"{label}: {note}", flush=True)
         try:
-            cal = fit(st, free_mask=mask, method="levenberg_marquardt")
+            cal = jt.fit(st, free_mask=mask, method="levenberg_marquardt")
         except RuntimeError as err2:
             return before | {"failed": str(err2).splitlines()[0], "fitted": int(mask.sum())}
     t_fit = time.perf_counter() - t0
-    after = validate(cal, nominal, prep["hd"])
+    after = held_out_rms(cal, nominal, prep["sessions"], prep["hd"])
     cmd = jt.actuator_command(nominal, work)
     q_cal = np.asarray(jt.forward(cal.table, cmd, nominal=nominal, guess=work))
-    e_after = q_true - q_cal
-    radius = float(angle_scale(nominal))
+    e_after = true_errors(q_true, q_cal)
+    radius = float(jt.platform_radius(nominal))
     row = before | {
         "instrument": prep["instrument"],
         "poses": prep["poses"],
@@ -116,9 +154,10 @@ def run_case(label, prep, nominal, work, q_true, blocks=FREE):
         "identifiable": cal.rank,
         "converged": cal.converged,
         "chi2_dof": cal.chi2 / max(cal.dof, 1),
+        "noise": noise_ratio(cal),
         "held_after": after,
         "abs_after": rms3(e_after),
-        "motion_after": rms3(align_pose_errors(work, e_after, radius)),
+        "motion_after": rms3(motion_errors(work, e_after, radius)),
         "t_fit": t_fit,
         "cal": cal,
         "failed": None,
@@ -135,11 +174,7 @@ def run_case(label, prep, nominal, work, q_true, blocks=FREE):
 
 
 def figure(rows, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = jt.reports.pyplot()
     rows = [r for r in rows if not r["failed"]]
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
     x = np.arange(len(rows))
@@ -174,23 +209,32 @@ def figure(rows, path):
     plt.close(fig)
 
 
-def main():
+def better(a: float, b: float) -> str:
+    """'lower' / 'higher' / 'the same' for a against b (3 significant digits)."""
+    if f"{a:.3g}" == f"{b:.3g}":
+        return "the same as"
+    return "lower than" if a < b else "higher than"
+
+
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="fewer candidates and test poses")
+    ap.add_argument("--quick", action="store_true", help="fewer poses, candidates, test poses")
     ap.add_argument("--seed", type=int, default=2024, help="seed of the simulated truth")
-    args = ap.parse_args()
+    ap.add_argument("--out", type=Path, default=RESULTS, help="output folder (default results/)")
+    args = ap.parse_args(argv)
+    out = args.out
     t_start = time.perf_counter()
-    OUT.mkdir(exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     nominal = jt.reference_table()
-    true = perturb_table(nominal, args.seed, joint_sigma=0.010, zero_sigma=0.050)
-    n_poses = 40
-    n_cand = 150 if args.quick else 300
-    n_work = 100 if args.quick else 300
-    n_held = 100 if args.quick else 200
-    work = plan_random(n_work, args.seed + 1)
-    held = plan_random(n_held, args.seed + 2)
-    cand = plan_random(n_cand, args.seed + 3)
-    rand_poses = plan_random(n_poses, args.seed + 4)
+    true = jt.perturb_table(nominal, args.seed, joint_sigma=JOINT_SIGMA, zero_sigma=ZERO_SIGMA)
+    if args.quick:
+        n_poses, n_cand, n_work, n_held, n_random, x_step = 15, 40, 30, 30, 5, 50.0
+    else:
+        n_poses, n_cand, n_work, n_held, n_random, x_step = 40, 300, 300, 200, 20, 25.0
+    work = jt.plan_random(n_work, args.seed + 1)
+    held = jt.plan_random(n_held, args.seed + 2)
+    cand = jt.plan_random(n_cand, args.seed + 3)
+    rand_poses = jt.plan_random(n_poses, args.seed + 4)
     cmd = jt.actuator_command(nominal, work)
     q_true = np.asarray(jt.forward(true, cmd, nominal=nominal, guess=work))
 
@@ -207,12 +251,12 @@ def main():
 
     rows, designs = [], {}
     for name, inst, target in (
-        ("6-D tracker", tracker6(), (0.0,) * 6),
-        ("3-D point tracker", point_tracker(), TARGET),
+        ("6-D tracker", jt.tracker6(), (0.0,) * 6),
+        ("3-D point tracker", jt.point_tracker(), TARGET),
     ):
         t0 = time.perf_counter()
-        jac = pose_jacobians(nominal, cand, inst, target=target)
-        cmp = compare_with_random(jac, n_poses, n_random=20, seed=args.seed, heldout=held)
+        jac = jt.pose_jacobians(nominal, cand, inst, target=target)
+        cmp = jt.compare_with_random(jac, n_poses, n_random=n_random, seed=args.seed, heldout=held)
         t_sel = time.perf_counter() - t0
         designs[name] = (cmp, t_sel)
         print(f"{name}: D-optimal {n_poses} of {n_cand} candidates in {t_sel:.1f} s", flush=True)
@@ -222,37 +266,52 @@ def main():
             case(f"{name}, random {n_poses}, L0 only", prep, ("zero_lengths",))
         prep = data(inst, cmp["selection"].poses, FRAME, target)
         case(f"{name}, D-optimal {n_poses}", prep)
-    line = plan_x_line()
-    prep = data(interferometer(), line, FRAME_X)
+    line = jt.plan_x_line(x_step)
+    interferometer = jt.interferometer()
+    prep = data(interferometer, line, FRAME_X)
     r_if = case("x interferometer, x line", prep)
     r_if0 = case("x interferometer, x line, L0 only", prep, ("zero_lengths",))
     # the interferometer held out on the x line itself (between the calibration stops)
-    hd = simulate(nominal, true, plan_x_line(25.0, 187.5), interferometer(), frame=FRAME_X)
+    between = jt.plan_x_line(x_step, 200.0 - x_step / 2)
+    hd = jt.simulate(nominal, true, between, interferometer, frame=FRAME_X)
     if_line = {
-        r["label"]: validate(r["cal"], nominal, hd)["x"] for r in (r_if, r_if0) if not r["failed"]
+        r["label"]: held_out_rms(r["cal"], nominal, prep["sessions"], hd)["x"]
+        for r in (r_if, r_if0)
+        if not r["failed"]
     }
     total = time.perf_counter() - t_start
+    # joints fitted modulo rigid motions: table parameters left per tracker
+    n_table = {}
+    for r in rows:
+        if not r["failed"] and "L0" not in r["label"] and "tracker" in r["label"]:
+            n_table.setdefault(r["table_params"], []).append(r["label"].split(",")[0])
+    n_table = "; ".join(
+        f"{n} with the {' and '.join(dict.fromkeys(v))}" for n, v in n_table.items()
+    )
 
     md = [
         "# Calibration study: instruments and pose plans",
         "",
         f"`python studies/calibration_study.py{' --quick' if args.quick else ''}` "
         f"(seed {args.seed}, {total:.0f} s on this machine, CPU). Reference table; truth = "
-        "`perturb_table` (joint centres σ 10 µm per coordinate, zero lengths σ 50 µm), the "
-        "spiral term compensated by the controller. Fitted: the paper's 42 geometric "
-        "parameters (joints modulo rigid motions: 30 with a 6-D or 3-D tracker), or the six "
-        'zero lengths only ("L0 only"), plus the instrument frame (and target) the '
+        f"`perturb_table` (joint centres σ {JOINT_SIGMA * 1e3:g} µm per coordinate, zero "
+        f"lengths σ {ZERO_SIGMA * 1e3:g} µm), the spiral term compensated by the controller. "
+        "Fitted: the paper's 42 geometric parameters (joints modulo rigid motions: "
+        f"{n_table or 'n/a'}), or the six zero lengths only "
+        '("L0 only"), plus the instrument frame (and target) the '
         "instrument can see. Instrument frame: shifted (50, −30, 20) mm and tilted (1.2°, "
         "−0.9°, 2.0°) for the trackers; an x offset of 50 mm for the interferometer. The point "
         "tracker follows a target at (30, −20, 80) mm on the platform. Random and D-optimal "
         f"plans have the same number of poses ({n_poses}); the D-optimal ones are chosen from "
-        f"{n_cand} random candidates (`jaxtable._poses.select`: greedy + exchange on log det "
-        "of the Fisher information of the 42-parameter fit).",
+        f"{n_cand} random candidates by `jaxtable.compare_with_random` (the selection of "
+        "`jaxtable.select_poses`: greedy + exchange on log det of the Fisher information of "
+        "the 42-parameter fit).",
         "",
         f"## Fit and held-out residuals (same instrument, {n_held} random workspace poses; "
         "µm / arcsec)",
         "",
-        "| case | fitted (table + nuisance) | identifiable | χ²/dof | held-out RMS before | "
+        "| case | fitted (table + nuisance) | identifiable | noise: σ estimated / stated "
+        "| held-out RMS before | "
         "held-out RMS after | first call, incl. compile (s) | fit (s) |",
         "|---|---|---|---|---|---|---|---|",
     ]
@@ -262,7 +321,7 @@ def main():
             continue
         md.append(
             f"| {r['label']}{' (*)' if r['note'] else ''} | {r['fitted']} ({r['table_params']} + "
-            f"{r['fitted'] - r['table_params']}) | {r['identifiable']} | {r['chi2_dof']:.2f} "
+            f"{r['fitted'] - r['table_params']}) | {r['identifiable']} | {r['noise']} "
             f"| {fmt_cols(r['held_before'])} | {fmt_cols(r['held_after'])} | "
             f"{r['t_first']:.1f} | {r['t_fit']:.2f} |"
         )
@@ -272,16 +331,24 @@ def main():
         "calibration data; that first call compiles the fit (one compilation per data shape: "
         "the D-optimal and L0-only cases reuse it, the L0-only fits freeze the joints of the "
         "same setup and data). Fit: the "
-        "calibration itself, compiled (Jacobian, solve, covariance, identifiability). "
-        "Solver: `fit`'s default; (*) marks a case where it failed and the table shows "
-        '`method="levenberg_marquardt"` instead (the failure is listed below).',
+        "calibration itself, compiled (Jacobian, solve, covariance, identifiability, noise "
+        "estimate: `fit` rescales the stated σ of each noise group until the residuals agree "
+        "with it, so χ²/dof is 1 by construction and the σ ratio is the check against the "
+        "instrument's stated noise). Solver: `fit`'s default"
+        + (
+            '; (*) marks a case where it failed and the table shows `method="levenberg_'
+            'marquardt"` instead (the failure is listed below).'
+            if any(r.get("note") for r in rows)
+            else " in every case."
+        ),
         "",
         f"## True pose error over {n_work} random workspace poses",
         "",
-        "Position: RMS of |Δt| (µm); rotation: RMS of the Euler-angle error norm (arcsec). "
-        "*Absolute*: true pose minus the pose the model predicts, in the base frame. *Motion*: "
-        "the same after removing the best constant base-frame and platform-target transform "
-        "(`jaxtable._poses.align_pose_errors`): what an instrument in an unknown frame can "
+        "Position: RMS of |Δt| (µm); rotation: RMS of the rotation-vector angle (arcsec) of "
+        "`jaxtable.pose_error`. *Absolute*: true pose against the pose the model predicts, in "
+        "the base frame. *Motion*: the same after removing the best constant base-frame and "
+        "platform-target transform (`jaxtable.align_pose_errors`, applied in Euler increments "
+        "through `jaxtable.euler_rate_matrix`): what an instrument in an unknown frame can "
         "check, and what an IMU test, which uses relative motions, depends on.",
         "",
         "| case | absolute before | absolute after | motion before | motion after |",
@@ -311,7 +378,7 @@ def main():
     for name, (cmp, t_sel) in designs.items():
         for plan, r, t in (
             ("D-optimal", cmp["optimised"], f"{t_sel:.1f}"),
-            ("random (median of 20)", cmp["random_median"], "–"),
+            (f"random (median of {n_random})", cmp["random_median"], "–"),
         ):
             md.append(
                 f"| {name} | {plan} | {float(r['logdet']):.1f} | {float(r['o1']):.4f} | "
@@ -331,6 +398,12 @@ def main():
     def held_x(r):
         return "fit failed" if r["failed"] else f"{r['held_after']['x'] * 1e3:.1f} µm"
 
+    def gain(r):
+        """'reduces' / 'increases' the true motion (position) error, or why not known."""
+        if r["failed"]:
+            return None
+        return r["motion_after"][0] < r["motion_before"][0]
+
     by = {r["label"]: r for r in rows}
     t6r, t6d = by[f"6-D tracker, random {n_poses}"], by[f"6-D tracker, D-optimal {n_poses}"]
     p3r, p3d = (
@@ -338,64 +411,139 @@ def main():
         by[f"3-D point tracker, D-optimal {n_poses}"],
     )
     p30 = by[f"3-D point tracker, random {n_poses}, L0 only"]
+    noise_if = interferometer.noise[0] * 1e3
+
+    # x interferometer: what the line determines and what fitting it does to the workspace
+    if r_if["failed"]:
+        if_verdict = f" The 42-parameter fit failed ({r_if['failed']})."
+    else:
+        full_rank = r_if["identifiable"] == r_if["fitted"]
+        worse = not gain(r_if)
+        if_verdict = (
+            " The paper's experiment checks the table along x; "
+            + (
+                "its data determine every fitted combination"
+                if full_rank
+                else f"it determines only {r_if['identifiable']} of the {r_if['fitted']} "
+                "fitted combinations, so it cannot calibrate the workspace"
+            )
+            + (
+                ", and fitting it makes the workspace worse (true motion error up): the solver "
+                "moves directions the line cannot determine"
+                + (" (see the solver notes)" if r_if["note"] else "")
+                + "."
+                if worse
+                else ", and here fitting it does not make the workspace worse (true motion "
+                "error down)."
+            )
+        )
+    line_rms = ", ".join(
+        f"{v * 1e3:.2f} µm ({'L0 only' if 'L0' in k else '42 parameters'})"
+        for k, v in if_line.items()
+    )
+    line_vs_noise = (
+        f" ({'at' if max(if_line.values()) * 1e3 < 1.5 * noise_if else 'above'} the "
+        f"{noise_if:g} µm noise)"
+        if if_line
+        else ""
+    )
+
+    # 6-D tracker: D-optimal vs random, measured (one realisation) and predicted
+    d6 = designs["6-D tracker"][0]
+    pred_opt = float(np.sqrt(np.mean(np.asarray(d6["optimised"]["motion_rms"])[:3] ** 2)))
+    pred_rand = float(np.sqrt(np.mean(np.asarray(d6["random_median"]["motion_rms"])[:3] ** 2)))
+    if t6r["failed"] or t6d["failed"]:
+        six_cmp = "one of the fits failed."
+    else:
+        six_cmp = (
+            f"in this realisation the D-optimal plan's motion error is "
+            f"{better(t6d['motion_after'][0], t6r['motion_after'][0])} the random plan's; the "
+            f"design predicts it {better(pred_opt, pred_rand)} the median random plan's."
+        )
+
+    # 3-D point tracker: predicted parameter std against the true errors
+    std3 = float(designs["3-D point tracker"][0]["random_median"]["mean_std"]) * 1e3
+    lo_err, hi_err = JOINT_SIGMA * 1e3, ZERO_SIGMA * 1e3
+    std_vs = "above" if std3 > hi_err else ("below" if std3 < lo_err else "within the range of")
+    g3 = gain(p3r)
+    rule_holds = g3 is not None and (std3 > hi_err) == (not g3)
+    three = (
+        f"- 3-D point tracker, {n_poses} poses: {ident(p3r)} identifiable; the fitted "
+        f"table parameters have a mean predicted std of {std3:.0f} µm (random plans), "
+        f"{std_vs} the true errors of {lo_err:g}–{hi_err:g} µm; true motion error "
+        f"{motion(p3r)} (random), {motion(p3d)} (D-optimal), {motion(p30)} (L0 only). "
+    )
+    if g3 is not None:
+        three += (
+            f"The 42-parameter fit {'reduces' if g3 else 'increases'} the motion error"
+            + (
+                f"; the L0-only fit {'also ' if gain(p30) == g3 else ''}"
+                f"{'reduces' if gain(p30) else 'increases'} it"
+                if gain(p30) is not None
+                else ""
+            )
+            + ". A calibration is only worth its parameters when their predicted std is below "
+            "the errors it should remove"
+            + (
+                "; this case agrees with that rule"
+                if rule_holds
+                else "; here that rule alone does not predict the outcome"
+            )
+            + ": check `Calibration.std` (or the design's prediction) before trusting a fit."
+        )
+
+    # absolute vs motion error after calibration, trackers
+    trackers = [r for r in (t6r, t6d, p3r, p3d) if not r["failed"]]
+    abs_up = [r for r in trackers if r["abs_after"][0] > r["abs_before"][0]]
+    motion_down = [r for r in abs_up if gain(r)]
+    if motion_down:
+        abs_note = (
+            " For "
+            + ", ".join(r["label"] for r in motion_down)
+            + " the absolute error grows while the motion error falls: with the instrument "
+            "frame estimated, near-rigid combinations of zero lengths and joints (moving the "
+            "platform almost uniformly) are weakly determined; they hardly change the motion "
+            "error but need a frame registered to the base to be fixed."
+        )
+    elif not abs_up:
+        abs_note = " Calibration does not increase the absolute error for any tracker case."
+    else:
+        abs_note = (
+            " The absolute error grows for "
+            + ", ".join(r["label"] for r in abs_up)
+            + ", and so does the motion error."
+        )
+
     md += [
         "",
         "## Findings (numbers from the tables above)",
         "",
         f"- x interferometer on the x line ({len(line)} readings): {ident(r_if)} fitted "
-        f"parameter combinations identifiable with the 42-parameter model"
-        + (f" ({r_if['failed']})" if r_if["failed"] else "")
-        + f", {ident(r_if0)} with L0 only. Held out on the line between the stops, x RMS "
-        + ", ".join(
-            f"{v * 1e3:.2f} µm ({'L0 only' if 'L0' in k else '42 parameters'})"
-            for k, v in if_line.items()
-        )
-        + f"; on random workspace poses {held_x(r_if)} (L0 only {held_x(r_if0)}) against "
-        f"{r_if0['held_before']['x'] * 1e3:.1f} µm before; true motion error {motion(r_if)} "
-        f"(L0 only: {motion(r_if0)}). The paper's experiment checks the table along x; it "
-        "cannot calibrate the workspace"
-        + (
-            ", and fitting it makes the workspace worse: the solver moves directions the "
-            "line cannot determine (see the solver notes)."
-            if not r_if["failed"] and r_if["motion_after"][0] > r_if["motion_before"][0]
-            else "."
-        ),
+        f"parameter combinations identifiable with the 42-parameter model, {ident(r_if0)} with "
+        f"L0 only. Held out on the line between the stops, x RMS {line_rms or 'n/a'}"
+        f"{line_vs_noise}; on random workspace poses {held_x(r_if)} (L0 only {held_x(r_if0)}) "
+        f"against {r_if0['held_before']['x'] * 1e3:.1f} µm before; true motion error "
+        f"{motion(r_if)} (L0 only: {motion(r_if0)})." + if_verdict,
         f"- 6-D tracker, {n_poses} poses: {ident(t6r)} identifiable; true motion error "
         f"{motion(t6r)} (random), {motion(t6d)} (D-optimal); one realisation each, against "
         "the predicted motion error per column (x, y, z) of "
-        + ", ".join(
-            f"{v * 1e3:.2f}" for v in designs["6-D tracker"][0]["optimised"]["motion_rms"][:3]
-        )
+        + ", ".join(f"{v * 1e3:.2f}" for v in np.asarray(d6["optimised"]["motion_rms"])[:3])
         + " µm (D-optimal) and "
-        + ", ".join(
-            f"{v * 1e3:.2f}" for v in designs["6-D tracker"][0]["random_median"]["motion_rms"][:3]
-        )
-        + " µm (median random plan).",
-        f"- 3-D point tracker, {n_poses} poses: {ident(p3r)} identifiable; the fitted "
-        f"table parameters have a mean predicted std of "
-        f"{float(designs['3-D point tracker'][0]['random_median']['mean_std']) * 1e3:.0f} µm "
-        "(random plans) against true errors of 10–50 µm; true motion error "
-        f"{motion(p3r)} (random), {motion(p3d)} (D-optimal), {motion(p30)} (L0 only). A "
-        "calibration is only worth its parameters when their predicted std is below the "
-        "errors it should remove: check `Calibration.std` (or the design's prediction) "
-        "before trusting a fit.",
+        + ", ".join(f"{v * 1e3:.2f}" for v in np.asarray(d6["random_median"]["motion_rms"])[:3])
+        + " µm (median random plan): "
+        + six_cmp,
+        three,
         "- Absolute (base-frame) error after calibration: "
-        + ", ".join(
-            f"{r['label']} {r['abs_after'][0]:.0f} µm"
-            for r in (t6r, t6d, p3r, p3d)
-            if not r["failed"]
-        )
-        + f" against {t6r['abs_before'][0]:.0f} µm before. With the instrument frame "
-        "estimated, near-rigid combinations of zero lengths and joints (moving the platform "
-        "almost uniformly) are weakly determined: they hardly change the motion error but need "
-        "a frame registered to the base to be fixed.",
+        + ", ".join(f"{r['label']} {r['abs_after'][0]:.0f} µm" for r in trackers)
+        + f" against {t6r['abs_before'][0]:.0f} µm before."
+        + abs_note,
         "",
         "Figure: calibration_study.png (true position / rotation error per case, log scale).",
         "",
     ]
     text = "\n".join(md)
-    (OUT / "calibration_study.md").write_text(text)
-    figure(rows, OUT / "calibration_study.png")
+    (out / "calibration_study.md").write_text(text)
+    figure(rows, out / "calibration_study.png")
     print(text)
     print(f"total {time.perf_counter() - t_start:.0f} s")
 

@@ -181,6 +181,11 @@ def test_instruments_get_the_frame_dofs_they_can_see():
     assert dofs([3, 4, 5]) == ((3, 4, 5), (3, 4, 5))  # angles only: rotations
     assert dofs([0, 1, 2]) == (tuple(range(6)), (0, 1, 2))  # point tracker
     assert dofs(range(6)) == (tuple(range(6)), tuple(range(6)))
+    # on the paper's x line the beam's tilts enter only at second order: the offset alone
+    assert nuisance_dofs(np.eye(6, dtype=bool)[0], motion=(400.0, 0.0, 0.0)) == ((0,), ())
+    # an x-y instrument on a run in the x-y plane: its in-plane rotation, not the tilts
+    xy = np.array([1, 1, 0, 0, 0, 0], bool)
+    assert nuisance_dofs(xy, motion=(200.0, 200.0, 0.0)) == ((0, 1, 5), ())
 
 
 # --- the fitted model file and validate -----------------------------------------------------

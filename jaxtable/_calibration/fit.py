@@ -75,21 +75,29 @@ class Layout:
     gauge: tuple  # names of the joint sets fitted modulo rigid motions
 
 
-def nuisance_dofs(measured_mask: np.ndarray) -> tuple[tuple, tuple]:
+def nuisance_dofs(measured_mask: np.ndarray, motion=None) -> tuple[tuple, tuple]:
     """(frame DOFs, target DOFs) an instrument that reads the columns `measured_mask` (6,)
-    can see (indices into x, y, z, roll, pitch, yaw).
+    can see (indices into x, y, z, roll, pitch, yaw), on a run whose commanded positions
+    span `motion` (3,) mm (default: every axis moves).
 
-    Frame: a translation along axis k shows in position column k only; a rotation about
-    axis a shows in angle column a, and in every position column other than a (it turns the
-    platform's motion into that column: the cosine error of an interferometer's beam). The
-    target offset on the platform: its position when all three positions are read (a point
-    tracker follows a point), its orientation when all three angles are. What the columns
-    can see may still be undetermined by a particular pose plan (an x-line run cannot tell a
-    beam tilt from an offset); the fit's identifiability report says so.
+    Frame: a translation along axis k shows in position column k only. A rotation about
+    axis a shows in angle column a, and to first order in a position column b ≠ a through
+    the motion along the third axis c (an interferometer beam tilted about z reads y motion
+    in x): it is estimated when angle a is measured, or some position column b ≠ a is and the
+    run moves more than 1 mm along the matching c. (On a line along x the tilts enter only at
+    second order, as a scale of x that the geometry's scale already carries: estimating them
+    would let the fit wander.) The target offset on the platform: its position when all
+    three positions are read (a point tracker follows a point), its orientation when all
+    three angles are. The fit's identifiability report says what a plan still leaves
+    undetermined.
     """
     m = np.asarray(measured_mask, bool)
+    moves = np.ones(3, bool) if motion is None else np.asarray(motion, float) > 1.0
     frame = [k for k in range(3) if m[k]]
-    frame += [3 + a for a in range(3) if m[3 + a] or any(m[b] for b in range(3) if b != a)]
+    for a in range(3):
+        cross = any(m[b] and moves[3 - a - b] for b in range(3) if b != a)
+        if m[3 + a] or cross:
+            frame.append(3 + a)
     target = ([0, 1, 2] if m[:3].all() else []) + ([3, 4, 5] if m[3:].all() else [])
     return tuple(frame), tuple(target)
 
@@ -563,7 +571,8 @@ def setup(
         raise ValueError("no measured values in the data")
     mask = np.isfinite(data.measured)
     col_mask = mask.any(0)
-    frame_dofs, target_dofs = nuisance_dofs(col_mask) if estimate_frame else ((), ())
+    motion = np.ptp(data.cmd_pose[:, :3], axis=0)
+    frame_dofs, target_dofs = nuisance_dofs(col_mask, motion) if estimate_frame else ((), ())
     gauge = []
     if len(frame_dofs) == 6 and "base_joints" in free:
         gauge.append("base_joints")

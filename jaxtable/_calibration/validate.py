@@ -183,7 +183,7 @@ def validate_model(
             use = use[mask[use].any(axis=1)]
             if len(use) == 0:
                 raise ValueError(f"session '{label}': no measured row to register its frame on")
-            dofs, _ = nuisance_dofs(mask[use].any(axis=0))
+            dofs, _ = nuisance_dofs(mask[use].any(axis=0), np.ptp(data.cmd_pose[use, :3], 0))
             sub = data.subset(use)
             start = initial_frames(sub, dofs, predicted=base_reading[use])[0]
             frame = register_frame(q[use], measured[use], target, dofs, start, radius)
