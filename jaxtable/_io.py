@@ -164,16 +164,16 @@ def effects_to_toml(effects: dict) -> str:
         lines += ["", f"[effects.{name}]"]
         written = set()
         for key, (field_name, _, to_file) in conv.items():
-            lines.append(f"{key} = {_fmt(to_file(np.asarray(getattr(eff, field_name))))}")
+            lines.append(f"{key} = {toml_value(to_file(np.asarray(getattr(eff, field_name))))}")
             written.add(field_name)
         for f in type(eff).fields:
             if f in written:
                 continue
             v = np.asarray(getattr(eff, f))
             if v.ndim == 2:
-                lines.append(f"{f} = [" + ", ".join(_fmt(r) for r in v) + "]")
+                lines.append(f"{f} = [" + ", ".join(toml_value(r) for r in v) + "]")
             else:
-                lines.append(f"{f} = {_fmt(v)}")
+                lines.append(f"{f} = {toml_value(v)}")
     return "\n".join(lines) + ("\n" if lines else "")
 
 
@@ -215,11 +215,12 @@ def reference_table() -> Table:
         return load_table(path)
 
 
-def _fmt(x) -> str:
+def toml_value(x) -> str:
+    """A TOML literal for a string, a number (inf, nan included) or a nested list of them."""
     if isinstance(x, str):
         return '"' + x.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(x, (list, tuple, np.ndarray)):
-        return "[" + ", ".join(_fmt(v) for v in x) + "]"
+        return "[" + ", ".join(toml_value(v) for v in x) + "]"
     x = float(x)
     if math.isinf(x):
         return "inf" if x > 0 else "-inf"
@@ -232,24 +233,24 @@ def table_to_toml(table: Table, header: str = "") -> str:
     hand = ["right" if h > 0 else "left" for h in np.asarray(table.hand)]
     lines = [f"# {h}" if h else "#" for h in header.splitlines()] if header else []
     lines += [
-        f"name = {_fmt(table.name)}",
-        f"home_height = {_fmt(table.home_height)}",
-        f"lead = {_fmt(lead[0] if np.all(lead == lead[0]) else lead)}",
-        f"hand = {_fmt(hand[0] if len(set(hand)) == 1 else hand)}",
-        f"stroke = {_fmt(np.asarray(table.stroke))}",
+        f"name = {toml_value(table.name)}",
+        f"home_height = {toml_value(table.home_height)}",
+        f"lead = {toml_value(lead[0] if np.all(lead == lead[0]) else lead)}",
+        f"hand = {toml_value(hand[0] if len(set(hand)) == 1 else hand)}",
+        f"stroke = {toml_value(np.asarray(table.stroke))}",
     ]
     limit = float(table.joint_angle_limit)
     if math.isfinite(limit):
-        lines.append(f"joint_angle_limit = {_fmt(float(f'{np.rad2deg(limit):.12g}'))}")
+        lines.append(f"joint_angle_limit = {toml_value(float(f'{np.rad2deg(limit):.12g}'))}")
     lines += [
-        f"platform_mass = {_fmt(table.platform_mass)}",
-        f"platform_cog = {_fmt(np.asarray(table.platform_cog))}",
-        f"zero_lengths = {_fmt(np.asarray(table.zero_lengths))}",
+        f"platform_mass = {toml_value(table.platform_mass)}",
+        f"platform_cog = {toml_value(np.asarray(table.platform_cog))}",
+        f"zero_lengths = {toml_value(np.asarray(table.zero_lengths))}",
     ]
     for key in ("base_joints", "platform_joints", "base_axes", "platform_axes"):
         rows = np.asarray(getattr(table, key))
         lines.append(f"{key} = [")
-        lines += [f"    {_fmt(r)}," for r in rows]
+        lines += [f"    {toml_value(r)}," for r in rows]
         lines.append("]")
     return "\n".join(lines) + "\n"
 

@@ -112,3 +112,11 @@ def pose_error(
     """
     D = rotation_matrix(actual[3:]) @ rotation_matrix(commanded[3:]).T
     return jnp.concatenate([actual[:3] - commanded[:3], rotation_log(D)])
+
+
+def wrap_reading_difference(diff: Float[ArrayLike, "... 6"]) -> Float[Array, "... 6"]:
+    """A difference of two readings (..., 6) (x, y, z, roll, pitch, yaw; mm / rad) with its
+    angle columns wrapped to [−π, π): a residual of Euler-angle columns."""
+    diff = jnp.asarray(diff)
+    angles = jnp.mod(diff[..., 3:] + jnp.pi, 2 * jnp.pi) - jnp.pi
+    return jnp.concatenate([diff[..., :3], angles], axis=-1)

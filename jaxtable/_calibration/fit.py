@@ -31,7 +31,7 @@ from .._context import Context, directions
 from .._effects import resolve_effects
 from .._forward import RESULTS, ForwardOptions, forward_one
 from .._kinematics import in_stroke
-from .._rotation import euler_from_matrix
+from .._rotation import euler_from_matrix, wrap_reading_difference
 from .._table import Table, replace
 from .instruments import observe
 from .measurements import Measurements
@@ -154,7 +154,7 @@ def residual(theta, args):
     problem, layout = args
     reading, _ = _predict(problem, layout, theta)
     diff = reading - problem.measured
-    diff = diff.at[:, 3:].set(jnp.mod(diff[:, 3:] + jnp.pi, 2 * jnp.pi) - jnp.pi)
+    diff = wrap_reading_difference(diff)
     return (diff * problem.weight).reshape(-1)
 
 
@@ -637,9 +637,7 @@ def fit(
         use[np.asarray(rows)] = True
         use &= measured_rows
     cells = st.mask & use[:, None]
-    nm = st.noise or noise_model(
-        np.where(st.mask, 0.0, np.nan), np.where(st.mask, 1.0 / np.where(base > 0, base, 1), 0)
-    )
+    nm = st.noise or noise_model(np.where(st.mask, 0.0, np.nan), None)
     G = len(nm.names)
     scale = np.ones(G)
     kw = dict(

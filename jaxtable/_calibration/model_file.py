@@ -23,7 +23,14 @@ import numpy as np
 
 from .. import _params as params
 from .._errors import TableFileError
-from .._io import effects_from_dict, effects_to_toml, read_toml, table_from_dict, table_to_toml
+from .._io import (
+    effects_from_dict,
+    effects_to_toml,
+    read_toml,
+    table_from_dict,
+    table_to_toml,
+    toml_value,
+)
 from .._table import Table, check_table
 from .fit import Calibration, hardware_table
 
@@ -87,29 +94,25 @@ def fitted_model(cal: Calibration, nominal: Table, sessions: list[str]) -> Fitte
     )
 
 
-def _fmt(v) -> str:
-    return "[" + ", ".join(repr(float(x)) for x in np.asarray(v, float)) + "]"
-
-
 def model_to_toml(model: FittedModel, header: str = "") -> str:
     """TOML text of a fitted model (inverse of `load_fitted_model`)."""
     text = table_to_toml(model.table, header)
     if model.nominal_zero_lengths is not None:
         text += "\n[controller]\n"
-        text += f"zero_lengths = {_fmt(model.nominal_zero_lengths)}\n"
+        text += f"zero_lengths = {toml_value(model.nominal_zero_lengths)}\n"
     if model.effects:
         text += effects_to_toml(model.effects)
     ins = model.instrument
     if ins is not None:
         text += "\n[instrument]\n"
-        text += f"target = {_fmt(params.pose_to_file(ins.target))}\n"
-        text += f"target_sigma = {_fmt(params.pose_to_file(ins.target_sigma))}\n"
+        text += f"target = {toml_value(params.pose_to_file(ins.target))}\n"
+        text += f"target_sigma = {toml_value(params.pose_to_file(ins.target_sigma))}\n"
         for label, pose in ins.frames.items():
             key = label.replace("\\", "\\\\").replace('"', '\\"')
             text += f'\n[instrument.frames."{key}"]\n'
-            text += f"pose = {_fmt(params.pose_to_file(pose))}\n"
+            text += f"pose = {toml_value(params.pose_to_file(pose))}\n"
             sig = ins.frame_sigma.get(label, np.full(6, np.nan))
-            text += f"sigma = {_fmt(params.pose_to_file(sig))}\n"
+            text += f"sigma = {toml_value(params.pose_to_file(sig))}\n"
     return text
 
 

@@ -101,34 +101,37 @@ def noise_model(measured: np.ndarray, sigma: np.ndarray | None, override: dict |
         sigma0[:, k] = np.where(mask[:, k], v, np.nan)
         stated_cell[:, k] = mask[:, k]
     # instruments: the column sets that many rows read; a row with a lost cell belongs to
-    # the smallest such set that holds its columns (a lost cell is not another instrument)
-    keys = [tuple(int(c) for c in np.flatnonzero(m)) for m in mask]
-    counts: dict = {}
-    for k in keys:
-        if k:
-            counts[k] = counts.get(k, 0) + 1
-    frequent = (
-        [k for k, c in counts.items() if c >= max(3, 0.1 * n)] or [max(counts, key=counts.get)]
-        if counts
-        else []
-    )
-    frequent = sorted(frequent, key=lambda k: (len(k), -counts[k]))
+    # the smallest such set that holds its columns (a lost cell is not another instrument).
+    # Rows are grouped by their column set as a 6-bit code: loops run over the (at most 64)
+    # distinct sets, never over rows.
+    code = mask.astype(int) @ (1 << np.arange(6))
+    codes, inverse, counts = np.unique(code, return_inverse=True, return_counts=True)
+    seen = codes > 0
+    frequent = codes[seen & (counts >= max(3, 0.1 * n))]
+    if frequent.size == 0 and seen.any():
+        frequent = codes[seen][[np.argmax(counts[seen])]]
+    bits = np.array([bin(int(f)).count("1") for f in frequent])
+    frequent = frequent[np.lexsort((-counts[np.searchsorted(codes, frequent)], bits))]
 
-    def instrument(key):
-        for f in frequent:
-            if set(key) <= set(f):
-                return f
-        return key
+    def instrument(c: int) -> int:
+        return next((int(f) for f in frequent if c & ~int(f) == 0), c)
 
-    assigned = [instrument(k) if k else () for k in keys]
-    order = list(dict.fromkeys(a for a in assigned if a))
+    assigned = np.array([instrument(int(c)) if c else 0 for c in codes])[inverse]
+    vals, first = np.unique(assigned[code > 0], return_index=True)
+    order = [int(v) for v in vals[np.argsort(first)]]  # in order of first appearance
     groups = np.full((n, 6), -1)
     names, columns = [], []
     many = len(order) > 1
     for key in order:
-        rows = np.array([a == key for a in assigned])
-        instrument_name = f" ({', '.join(params.POSE[c] for c in key)} instrument)" if many else ""
-        parts = (("positions", [c for c in key if c < 3]), ("angles", [c for c in key if c >= 3]))
+        cols_of = [c for c in range(6) if key >> c & 1]
+        rows = assigned == key
+        instrument_name = (
+            f" ({', '.join(params.POSE[c] for c in cols_of)} instrument)" if many else ""
+        )
+        parts = (
+            ("positions", [c for c in cols_of if c < 3]),
+            ("angles", [c for c in cols_of if c >= 3]),
+        )
         for part, cols in parts:
             g = len(names)
             cells = rows[:, None] & mask & np.isin(np.arange(6), cols)[None, :]

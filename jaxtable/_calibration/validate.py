@@ -25,7 +25,7 @@ from .._api import forward_solve
 from .._effects import resolve_effects
 from .._forward import platform_radius
 from .._model import length_residual
-from .._rotation import euler_from_matrix, rotation_matrix
+from .._rotation import euler_from_matrix, rotation_matrix, wrap_reading_difference
 from .._table import Table, replace
 from .fit import (
     Calibration,
@@ -90,12 +90,6 @@ def _readings(q, frames, target):
     return jax.vmap(observe, in_axes=(0, 0, None))(q, frames, target)
 
 
-def _wrap(diff: np.ndarray) -> np.ndarray:
-    out = np.array(diff, float)
-    out[..., 3:] = np.mod(out[..., 3:] + np.pi, 2 * np.pi) - np.pi
-    return out
-
-
 def register_frame(q, measured, target, dofs, start, radius: float) -> np.ndarray:
     """Instrument frame (6,) that best maps the model's poses `q` (M, 6) with `target` to
     the `measured` readings (M, 6, NaN = not measured), over the frame components `dofs`,
@@ -111,7 +105,7 @@ def register_frame(q, measured, target, dofs, start, radius: float) -> np.ndarra
     def resid(p, _):
         frame = start + E @ p
         r = _readings(q, jnp.broadcast_to(frame, q.shape), target) - m
-        r = r.at[:, 3:].set(jnp.mod(r[:, 3:] + jnp.pi, 2 * jnp.pi) - jnp.pi)
+        r = wrap_reading_difference(r)
         return (r * w).reshape(-1)
 
     solver = optx.GaussNewton(rtol=1e-10, atol=1e-10, linear_solver=lx.SVD(rcond=1e-9))
@@ -192,7 +186,7 @@ def validate_model(
         frames[rows] = frame
         info[label]["pose"] = [float(v) for v in params.pose_to_file(frame)]
     reading = np.asarray(_readings(jnp.asarray(q), jnp.asarray(frames), jnp.asarray(target)))
-    residual = np.where(mask, _wrap(measured - reading), np.nan)
+    residual = np.where(mask, np.asarray(wrap_reading_difference(measured - reading)), np.nan)
     measured_rows = mask.any(axis=1)
     predicted = measured_rows & ~registered
     scored = predicted if predicted.any() else (measured_rows & registered)
