@@ -45,6 +45,7 @@ from ._api import (  # noqa: E402
     spiral_extension,
 )
 from ._batch import batch_mesh, run_batch  # noqa: E402
+from ._cache import enable_compilation_cache  # noqa: E402
 from ._calibration.fit import Calibration, calibrate, fit, setup  # noqa: E402
 from ._calibration.instruments import interferometer, point_tracker, tracker6  # noqa: E402
 from ._calibration.measurements import (  # noqa: E402
@@ -60,6 +61,7 @@ from ._calibration.model_file import (  # noqa: E402
     load_fitted_model,
     save_fitted_model,
 )
+from ._calibration.noise import NoiseEstimate, parse_sigma  # noqa: E402
 from ._calibration.poses import (  # noqa: E402
     align_pose_errors,
     compare_with_random,
@@ -79,11 +81,13 @@ from ._calibration.simulate import (  # noqa: E402
 from ._calibration.validate import Validation, validate  # noqa: E402
 from ._context import Context  # noqa: E402
 from ._discovery.diagnose import Diagnosis, diagnose, heldout_rms  # noqa: E402
+from ._discovery.structure import StructureTest, structure_test  # noqa: E402
 from ._effects import (  # noqa: E402
     EFFECTS,
     AbstractEffect,
     Backlash,
     Compliance,
+    Discovered,
     LeadScale,
     PeriodicLead,
     Rehoming,
@@ -114,6 +118,7 @@ __all__ = [
     "CommandFunction",
     "Compliance",
     "Context",
+    "Discovered",
     "EFFECTS",
     "ForwardOptions",
     "ForwardResult",
@@ -133,6 +138,7 @@ __all__ = [
     "check_table",
     "command_function",
     "default_effects",
+    "enable_compilation_cache",
     "euler_from_matrix",
     "euler_rate_matrix",
     "forward",
@@ -208,10 +214,14 @@ __all__ = [
     "fitted_model",
     "load_fitted_model",
     "save_fitted_model",
+    "NoiseEstimate",
+    "parse_sigma",
     # discovery
     "Diagnosis",
+    "StructureTest",
     "diagnose",
     "heldout_rms",
+    "structure_test",
     # report writers
     "reports",
 ]

@@ -15,15 +15,20 @@ class Context(eqx.Module):
     - `temperature` (): °C (thermal; default 20 °C, the reference);
     - `payload` (): kg on the platform besides its own mass (compliance; at the platform CoG);
     - `session` (): int, index of the recording session in order of first appearance
-      (rehoming; 0 = the first).
+      (rehoming; 0 = the first);
+    - `time` (): when the stop was measured, scaled to 0..1 over the file (row index /
+      (rows − 1); the discovery dictionary's drift term `t`; default 0).
     """
 
     direction: Float[ArrayLike, "6"]
     temperature: Float[ArrayLike, ""]
     payload: Float[ArrayLike, ""]
     session: Int[ArrayLike, ""]
+    time: Float[ArrayLike, ""]
 
-    def __init__(self, direction=1.0, temperature=REFERENCE_TEMPERATURE, payload=0.0, session=0):
+    def __init__(
+        self, direction=1.0, temperature=REFERENCE_TEMPERATURE, payload=0.0, session=0, time=0.0
+    ):
         direction = jnp.asarray(direction, dtype=jnp.float64)
         if direction.ndim == 0:
             direction = jnp.broadcast_to(direction, (6,))
@@ -31,6 +36,7 @@ class Context(eqx.Module):
         self.temperature = jnp.asarray(temperature, dtype=jnp.float64)
         self.payload = jnp.asarray(payload, dtype=jnp.float64)
         self.session = jnp.asarray(session, dtype=jnp.int32)
+        self.time = jnp.asarray(time, dtype=jnp.float64)
 
 
 def batch_context(n: int, context: "Context | None" = None) -> Context:
@@ -42,7 +48,7 @@ def batch_context(n: int, context: "Context | None" = None) -> Context:
         raise ValueError(
             f"context direction has shape {direction.shape}, expected (6,) or ({n}, 6)"
         )
-    for name in ("temperature", "payload", "session"):
+    for name in ("temperature", "payload", "session", "time"):
         if jnp.shape(getattr(c, name)) not in ((), (n,)):
             raise ValueError(
                 f"context {name} has shape {jnp.shape(getattr(c, name))}, expected () or ({n},)"
@@ -52,7 +58,13 @@ def batch_context(n: int, context: "Context | None" = None) -> Context:
         jnp.broadcast_to(c.temperature, (n,)),
         jnp.broadcast_to(c.payload, (n,)),
         jnp.broadcast_to(c.session, (n,)),
+        jnp.broadcast_to(c.time, (n,)),
     )
+
+
+def run_time(n: int) -> np.ndarray:
+    """(n,) the stops' time over a file of n rows, scaled to 0..1 (row index / (n − 1))."""
+    return np.arange(n, dtype=float) / max(n - 1, 1)
 
 
 def directions(cmd_lengths: np.ndarray) -> np.ndarray:
@@ -71,7 +83,7 @@ def split_context(n: int, context: "Context | None" = None):
     Exactly one of the two is None."""
     c = Context() if context is None else context
     if jnp.ndim(c.direction) == 1 and all(
-        jnp.ndim(getattr(c, k)) == 0 for k in ("temperature", "payload", "session")
+        jnp.ndim(getattr(c, k)) == 0 for k in ("temperature", "payload", "session", "time")
     ):
         return c, None
     return None, batch_context(n, c)

@@ -257,6 +257,122 @@ EFFECTS: dict[str, type[AbstractEffect]] = {
     c.name: c for c in (Spiral, LeadScale, Backlash, PeriodicLead, Thermal, Compliance, Rehoming)
 }
 
+
+def _shared(x) -> Array:
+    return jnp.asarray(x, dtype=jnp.float64).reshape(())
+
+
+class Discovered(AbstractEffect):
+    """Terms of the discovery dictionary (DESIGN.md term strings), found in data by
+    `diagnose` beyond the library and kept in the model like any effect. Extra length of
+    leg i, mm, with s the extensions (mm), d the direction of travel, T = temperature −
+    20 °C, t the stop's time over its file (0..1) and k the session index:
+
+    | term | extra length on leg i | per-leg field | shared field | units |
+    |---|---|---|---|---|
+    | `s^2` | c_i s_i² | s2 (6,) | s2_all | 1/mm |
+    | `s^3` | c_i s_i³ | s3 (6,) | s3_all | 1/mm² |
+    | `s[j]` | c_ij s_j (j ≠ i: crosstalk) | cross (6, 6) [i, j] | cross_all (6,) [j] | mm/mm |
+    | `d*s` | c_i d_i s_i | ds (6,) | ds_all | mm/mm |
+    | `T*s` | c_i T s_i | Ts (6,) | Ts_all | 1/K |
+    | `t` | c_i t | t (6,) | t_all | mm |
+    | `session*s` | c_ki s_i, k ≥ 1 | session_s (S−1, 6) | session_s_all (S−1,) | mm/mm |
+
+    The coefficient on leg i is the per-leg value plus the shared one (a shared term is one
+    number for all legs). Every field is zero at `null`. Crosstalk makes leg i depend on the
+    other legs' extensions; at the µm/mm level of a real crosstalk the inverse kinematics'
+    per-leg Newton still converges (each step shrinks the error by the crosstalk ratio)."""
+
+    s2: Float[ArrayLike, "6"]
+    s2_all: Float[ArrayLike, ""]
+    s3: Float[ArrayLike, "6"]
+    s3_all: Float[ArrayLike, ""]
+    cross: Float[ArrayLike, "6 6"]
+    cross_all: Float[ArrayLike, "6"]
+    ds: Float[ArrayLike, "6"]
+    ds_all: Float[ArrayLike, ""]
+    Ts: Float[ArrayLike, "6"]
+    Ts_all: Float[ArrayLike, ""]
+    t: Float[ArrayLike, "6"]
+    t_all: Float[ArrayLike, ""]
+    session_s: Float[ArrayLike, "S 6"]
+    session_s_all: Float[ArrayLike, " S"]
+    name: ClassVar[str] = "discovered"
+    fields: ClassVar[tuple] = (
+        "s2",
+        "s2_all",
+        "s3",
+        "s3_all",
+        "cross",
+        "cross_all",
+        "ds",
+        "ds_all",
+        "Ts",
+        "Ts_all",
+        "t",
+        "t_all",
+        "session_s",
+        "session_s_all",
+    )
+    depends_on_extension: ClassVar[bool] = True
+    source: ClassVar[str] = "found in the data (the discovery dictionary), not a library effect"
+
+    def __init__(
+        self,
+        s2=0.0,
+        s2_all=0.0,
+        s3=0.0,
+        s3_all=0.0,
+        cross=np.zeros((6, 6)),
+        cross_all=0.0,
+        ds=0.0,
+        ds_all=0.0,
+        Ts=0.0,
+        Ts_all=0.0,
+        t=0.0,
+        t_all=0.0,
+        session_s=np.zeros((0, 6)),
+        session_s_all=None,
+    ):
+        self.s2, self.s3, self.ds, self.Ts, self.t = map(_legs, (s2, s3, ds, Ts, t))
+        self.s2_all, self.s3_all, self.ds_all, self.Ts_all, self.t_all = map(
+            _shared, (s2_all, s3_all, ds_all, Ts_all, t_all)
+        )
+        cross = jnp.asarray(cross, dtype=jnp.float64).reshape(6, 6)
+        self.cross = cross * (1.0 - jnp.eye(6))  # no self-crosstalk: that is lead_scale
+        self.cross_all = _legs(cross_all)
+        self.session_s = jnp.asarray(session_s, dtype=jnp.float64).reshape(-1, 6)
+        n = self.session_s.shape[0]
+        all_ = np.zeros(n) if session_s_all is None else session_s_all
+        self.session_s_all = jnp.asarray(all_, dtype=jnp.float64).reshape(n)
+
+    @classmethod
+    def null(cls, n_sessions: int = 1) -> "Discovered":
+        k = max(n_sessions - 1, 0)
+        return cls(session_s=np.zeros((k, 6)), session_s_all=np.zeros(k))
+
+    def __call__(self, table, pose, s, ctx):
+        ctx = Context() if ctx is None else ctx
+        others = (self.cross + self.cross_all[None, :]) * (1.0 - jnp.eye(6))
+        rows = jnp.concatenate(
+            [jnp.zeros((1, 6)), self.session_s + self.session_s_all[:, None]], axis=0
+        )
+        session = rows[jnp.clip(ctx.session, 0, rows.shape[0] - 1)]
+        T = ctx.temperature - REFERENCE_TEMPERATURE
+        return (
+            (self.s2 + self.s2_all) * s**2
+            + (self.s3 + self.s3_all) * s**3
+            + others @ s
+            + (self.ds + self.ds_all) * ctx.direction * s
+            + (self.Ts + self.Ts_all) * T * s
+            + (self.t + self.t_all) * ctx.time
+            + session * s
+        )
+
+
+# every effect a model (and a model file) may hold: the library and the discovered terms
+MODEL_EFFECTS: dict[str, type[AbstractEffect]] = {**EFFECTS, Discovered.name: Discovered}
+
 Effects = Mapping[str, AbstractEffect]
 
 

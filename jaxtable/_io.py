@@ -117,7 +117,7 @@ def effects_from_dict(doc: dict, where: str = "table") -> dict:
     """The `[effects.NAME]` tables of a table file -> {name: effect Module}. Field values are
     a scalar (all legs) or 6 values (rehoming: rows of 6 per later session); compliance is
     written as `k` (N/mm)."""
-    from ._effects import EFFECTS
+    from ._effects import MODEL_EFFECTS as EFFECTS
 
     section = doc.get("effects", {})
     if not isinstance(section, dict):
@@ -219,7 +219,7 @@ def toml_value(x) -> str:
     """A TOML literal for a string, a number (inf, nan included) or a nested list of them."""
     if isinstance(x, str):
         return '"' + x.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(x, (list, tuple, np.ndarray)):
+    if isinstance(x, (list, tuple)) or (isinstance(x, np.ndarray) and x.ndim > 0):
         return "[" + ", ".join(toml_value(v) for v in x) + "]"
     x = float(x)
     if math.isinf(x):

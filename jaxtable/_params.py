@@ -18,7 +18,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._effects import EFFECTS
+from ._effects import MODEL_EFFECTS
 
 GEOMETRY = ("base_joints", "platform_joints", "zero_lengths")
 """The 42 geometric parameters (b_i, a_i^p, L0_i): the default free set of every fit."""
@@ -80,7 +80,7 @@ def split(name: str) -> tuple[str | None, str]:
 def effect_parameters(effect: str) -> tuple[str, ...]:
     """The parameter names of a library effect: `("spiral.lead",)`, `("periodic_lead.a",
     "periodic_lead.b")`, ..."""
-    return tuple(f"{effect}.{f}" for f in EFFECTS[effect].fields)
+    return tuple(f"{effect}.{f}" for f in MODEL_EFFECTS[effect].fields)
 
 
 def check(table, effects, names) -> None:

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from ._analysis.tolerances import ToleranceFileError
+from ._cache import enable_compilation_cache
 from ._calibration.measurements import DataFileError
 from ._errors import KinematicsError, TableFileError
 from ._params import GEOMETRY
@@ -156,6 +157,7 @@ def _calibrate(args) -> int:
     from ._calibration.measurements import load_measurements
     from ._calibration.posterior import posterior, predictive_bands
     from ._calibration.simulate import plan_x_line
+    from ._discovery.structure import structure_test
     from ._reports.calibrate import write_calibration_report
 
     table = _table(args.table)
@@ -178,10 +180,20 @@ def _calibrate(args) -> int:
     if args.mcmc:
         post = posterior(st, cal, n_steps=args.steps, seed=0, progress=True)
         bands = predictive_bands(st, post, plan_x_line(), n_samples=100)
+    structure = structure_test(cal, st)
     paths = write_calibration_report(
-        table, st, cal, data, args.out, str(args.data), posterior=post, bands=bands
+        table,
+        st,
+        cal,
+        data,
+        args.out,
+        str(args.data),
+        posterior=post,
+        bands=bands,
+        structure=structure,
     )
     print(cal.report())
+    print(structure.words())
     print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0
 
@@ -230,6 +242,12 @@ def _diagnose(args) -> int:
         f"{str(diag.unexplained).lower()}; RMS {diag.rms_before:.3f} -> {diag.rms_after:.3f} "
         f"sigma, held-out {diag.heldout_rms_before:.3f} -> {diag.heldout_rms_after:.3f} sigma"
     )
+    for f in diag.discovered:
+        print(f"discovered: {f.words}")
+    if diag.absorbed:
+        print(f"absorbed (the model already reproduces them here): {', '.join(diag.absorbed)}")
+    if diag.structure is not None:
+        print(diag.structure.words())
     print(f"wrote {json_path} and {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0
 
@@ -287,6 +305,13 @@ def _bench(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxtable", description=__doc__)
+    p.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="do not use the persistent compilation cache (default: on, in "
+        "$JAXTABLE_CACHE_DIR or ~/.cache/jaxtable/jax; a repeat run on data of the same shape "
+        "skips most compilation)",
+    )
     sub = p.add_subparsers(dest="verb", required=True)
 
     def common(sp, out_default):
@@ -315,9 +340,9 @@ def build_parser() -> argparse.ArgumentParser:
             "--noise",
             choices=["estimate", "fixed"],
             default=default,
-            help="estimate: σ of each column group estimated from the fit (a stated σ is "
-            "tested against it); fixed: trust the stated σ"
-            + (" (default: fixed when every cell has a stated σ)" if default is None else ""),
+            help="estimate (default): σ of each column group estimated from the fit (a "
+            "stated σ sets relative weights and is tested against it); fixed: trust the "
+            "stated σ",
         )
 
     def compensation(sp, default=None, what="without cmd_l columns: the controller"):
@@ -437,9 +462,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sp.add_argument("--effects", default="", help="candidate effects (default: the whole library)")
     compensation(sp)
-    noise_options(sp, None)
+    noise_options(sp, "estimate")
     sp.add_argument(
-        "--alpha", type=float, default=0.01, help="false-alarm rate of the χ² test (0.01)"
+        "--alpha",
+        type=float,
+        default=0.01,
+        help="false-alarm rate of the structure test (0.01; it does not depend on σ's scale)",
     )
     sp.add_argument("--folds", type=int, default=5, help="k of the k-fold held-out score (5)")
     sp.set_defaults(func=_diagnose)
@@ -477,6 +505,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if not args.no_cache:
+        enable_compilation_cache()
     try:
         return args.func(args)
     except (TableFileError, KinematicsError, ToleranceFileError, DataFileError, UsageError) as e:

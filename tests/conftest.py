@@ -1,3 +1,4 @@
+import os
 from pathlib import Path
 
 import jax
@@ -7,9 +8,10 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 # Share compiled programs between the test workers (pytest-xdist) and between runs: JAX's
 # persistent compilation cache, in the (git-ignored) pytest cache directory.
-jax.config.update(
-    "jax_compilation_cache_dir", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax")
-)
+# The command line (main() called in tests) turns the cache on where JAXTABLE_CACHE_DIR says.
+CACHE = Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"
+os.environ["JAXTABLE_CACHE_DIR"] = str(CACHE)
+jax.config.update("jax_compilation_cache_dir", str(CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 import jaxtable as jt  # noqa: E402

@@ -112,6 +112,13 @@ ADDED = [
     "pose_error",
     "reports",
     "rotation_log",
+    # measured data and discovery beyond the library
+    "Discovered",
+    "NoiseEstimate",
+    "StructureTest",
+    "enable_compilation_cache",
+    "parse_sigma",
+    "structure_test",
 ]
 
 

@@ -37,6 +37,7 @@ STUDIES = {
         [],
         ["discovery_paper.md", "discovery_fig9_trend.png", "discovery_effect_*.png"],
     ),
+    "discovery_dictionary": ([], ["discovery_dictionary.md"]),
 }
 
 
@@ -53,7 +54,7 @@ def run_quick(name: str, extra: list, out: Path) -> subprocess.CompletedProcess:
 
 # quick runs that take more than ~90 s from a cold compilation cache on 2 cores (about
 # 140 s and 190 s: their fits and diagnose compile for every data shape)
-SLOW = {"calibration_study", "discovery_paper"}
+SLOW = {"calibration_study", "discovery_paper", "discovery_dictionary"}
 
 
 @pytest.mark.parametrize(

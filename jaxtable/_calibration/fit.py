@@ -27,7 +27,7 @@ from jax.flatten_util import ravel_pytree
 
 from .. import _params as params
 from .._api import actuator_command
-from .._context import Context, directions
+from .._context import Context, directions, run_time
 from .._effects import resolve_effects
 from .._forward import RESULTS, ForwardOptions, forward_one
 from .._kinematics import in_stroke
@@ -276,6 +276,9 @@ class Calibration:
     residual: np.ndarray | None = None  # (N, 6) weighted residuals after the fit
     covariance: np.ndarray | None = None
     jacobian: np.ndarray | None = None  # (N·6, P) weighted residual Jacobian, free columns
+    # (N·6, P_all): the same over every parameter of the set-up (`Setup.names`), frozen ones
+    # included: what freeing a parameter would add (the discovery dictionary's screening)
+    jacobian_full: np.ndarray | None = None
     weight: np.ndarray | None = None  # (N, 6) the weights 1/σ of the fit (all rows)
     noise: NoiseEstimate | None = None
     labels: list = field(default_factory=list)
@@ -433,7 +436,11 @@ def data_context(data: Measurements, cmd: np.ndarray, uses=("temperature", "mass
             )
         values[need] = np.where(blank, ref, v)
     return Context(
-        directions(cmd), values["temperature"], values["mass"], np.asarray(data.session_index)
+        directions(cmd),
+        values["temperature"],
+        values["mass"],
+        np.asarray(data.session_index),
+        run_time(len(cmd)),
     )
 
 
@@ -716,7 +723,8 @@ def _fit_once(
         )
     after = np.asarray(residual_jit(value, (problem, layout))).reshape(-1, 6)
     on = fm > 0
-    J = np.asarray(J)[:, on]
+    J_full = np.asarray(J)
+    J = J_full[:, on]
     flat = np.asarray(ravel_pytree(value)[0])[on]
     names = [n for n, k in zip(st.names, on) if k]
     labels = [n for n, k in zip(st.labels or st.names, on) if k]
@@ -783,6 +791,7 @@ def _fit_once(
         residual=after,
         covariance=cov,
         jacobian=J,
+        jacobian_full=J_full,
     )
 
 

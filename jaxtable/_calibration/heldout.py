@@ -6,10 +6,15 @@ import math
 import numpy as np
 
 from .fit import Calibration
+from .noise import fit_basis
 
 
-def make_folds(n: int, k: int, seed: int) -> list[np.ndarray]:
-    """k disjoint folds of row indices 0..n−1 (sorted arrays), rows dealt at random."""
+def make_folds(n: int, k: int, seed: int, grouped: bool = False) -> list[np.ndarray]:
+    """k disjoint folds of row indices 0..n−1 (sorted arrays), rows dealt at random; with
+    `grouped`, k contiguous blocks of rows instead (each fold a stretch of the run, so a
+    held-out score also tests extrapolation in time and between neighbouring stops)."""
+    if grouped:
+        return [np.asarray(b) for b in np.array_split(np.arange(n), k)]
     perm = np.random.default_rng(seed).permutation(n)
     return [np.sort(perm[i::k]) for i in range(k)]
 
@@ -26,12 +31,8 @@ def heldout_rms(
     is linear to many digits). k refits cost k full fits; this costs one SVD. `rescale`
     (N, 6): factors applied to the held-out residuals (to express them in another fit's σ).
     """
-    J = cal.jacobian
     e = cal.residual.reshape(-1)
-    scale = np.linalg.norm(J, axis=0)
-    scale[scale == 0] = 1.0
-    U, sv, _ = np.linalg.svd(J / scale, full_matrices=False)
-    U = U[:, sv > tol * sv[0]]
+    U = fit_basis(cal.jacobian, tol)
     sq, count = 0.0, 0
     for rows in folds:
         idx = (rows[:, None] * 6 + np.arange(6)[None, :])[mask[rows]]

@@ -215,15 +215,22 @@ class NoiseEstimate:
         }
 
 
-def redundancy(jacobian: np.ndarray, tol: float = 1e-6) -> np.ndarray:
-    """Redundancy numbers r_i = 1 − H_ii (M,) of a weighted least-squares fit with weighted
-    Jacobian (M, P) (zero rows: observations not used, r = 0 there), rank-truncated like the
-    fit's identifiability analysis."""
+def fit_basis(jacobian: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """(M, r) orthonormal basis of the column space of a weighted Jacobian (M, P), rank-
+    truncated like the fit's identifiability analysis (columns scaled to unit norm, singular
+    values below `tol` × the largest dropped): H = U Uᵀ is the fit's hat matrix."""
     J = np.asarray(jacobian)
     scale = np.linalg.norm(J, axis=0)
     scale[scale == 0] = 1.0
     U, sv, _ = np.linalg.svd(J / scale, full_matrices=False)
-    U = U[:, sv > tol * sv[0]] if sv.size else U[:, :0]
+    return U[:, sv > tol * sv[0]] if sv.size else U[:, :0]
+
+
+def redundancy(jacobian: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """Redundancy numbers r_i = 1 − H_ii (M,) of a weighted least-squares fit with weighted
+    Jacobian (M, P) (zero rows: observations not used, r = 0 there)."""
+    J = np.asarray(jacobian)
+    U = fit_basis(J, tol)
     used = np.any(J != 0, axis=1)
     return np.where(used, 1.0 - np.sum(U**2, axis=1), 0.0)
 

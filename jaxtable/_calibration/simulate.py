@@ -8,7 +8,7 @@ import numpy as np
 
 from .._analysis.workspaces import Workspace
 from .._api import actuator_command, forward
-from .._context import Context, batch_context, directions
+from .._context import Context, batch_context, directions, run_time
 from .._errors import renamed_argument
 from .._table import Table, replace
 from .instruments import Instrument, observe
@@ -112,6 +112,7 @@ def simulate(
         20.0 if temp is None else temp,
         0.0 if load is None else load,
         index,
+        run_time(n),
     )
     actual = forward(
         true, cmd, effects=effects, nominal=nominal, guess=poses, context=batch_context(n, ctx)

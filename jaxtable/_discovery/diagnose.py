@@ -7,21 +7,29 @@ Procedure (`diagnose`):
 1. Fit the base model: the 42 geometric parameters (joints modulo the rigid motions the
    instrument frame absorbs, and L0) plus the instrument frame per session and the target,
    through the exact forward kinematics (`_calibrate.fit`).
-2. Structure test. Under the model and the stated σ, the weighted residual sum χ² follows a
-   χ² law with dof = observations − identifiable parameters. The residuals are "consistent
-   with the noise" when P(χ²_dof ≥ χ²) ≥ `alpha` (false-alarm rate `alpha`, default 1 %) AND
-   no candidate effect has strong evidence (ΔBIC < −`bic_threshold`): a candidate's
-   likelihood-ratio test is a structure test aimed at its own signature, with a false-alarm
-   rate far below 1e-6 at that threshold.
+2. Structure test, independent of σ's scale (`structure.structure_test`): residuals of
+   stops that are neighbours in leg extension (and direction of travel), time or
+   temperature must agree no more than the fit's projection of noise makes them (a Monte
+   Carlo null law; false-alarm rate `alpha`, default 1 %, for all families together). The
+   residuals are "consistent with the noise" when the test sees no structure AND no
+   candidate effect has strong evidence (ΔBIC < −`bic_threshold`): a candidate's
+   likelihood-ratio test is a structure test aimed at its own signature. The noise itself
+   is estimated for every model (variance-component estimation; a stated σ only sets
+   relative weights within its group and is reported against the estimate), so a σ stated
+   25 % too small or too large, or not at all, gives the same decisions.
 3. Candidates. Each applicable library effect not yet in the model is added at its null
    value and fitted with the model (the nested fit); score: ΔBIC = Δχ² + Δrank·ln(n_obs),
    and the k-fold held-out gain 1 − RMS_heldout(model + effect) / RMS_heldout(model) (RMS
    of σ-normalised residuals of rows the fit did not see; `heldout_rms`). The candidate
    with the lowest ΔBIC among those whose held-out gain exceeds `min_gain` and that
    explain at least `min_share` of the excess χ² (χ² − dof) is added; repeat.
+   Beside the library, the discovery dictionary (`dictionary.py`) is screened against the
+   same fit: its best term is added instead of the best library effect only when it scores
+   `priority` ΔBIC units more (library effects keep priority), beats the dictionary-wide
+   threshold and pays on held-out rows; it is then refitted jointly with everything else.
 4. Stop when the residuals are consistent with the noise or no candidate pays. `unexplained`
-   is true when the final model still fails the χ² test: structure remains that no library
-   effect explains.
+   is true when the final model still fails the structure test: structure remains that no
+   library effect explains, with the feature families that show it as hints.
 
 Every fit of one data set, nested model and fold shares one compiled program: all library
 effects sit in the model at their null values and the free set and the fitted rows are
@@ -41,8 +49,10 @@ from .. import _params as params
 from .._calibration.fit import Calibration, Setup, fit, setup
 from .._calibration.heldout import heldout_rms, make_folds
 from .._calibration.measurements import Measurements
-from .._effects import EFFECTS
+from .._effects import EFFECTS, MODEL_EFFECTS
 from .._table import Table
+from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
+from .structure import StructureTest, structure_test
 
 GEOMETRY = params.GEOMETRY
 
@@ -116,6 +126,10 @@ class Step:
     decision: str
     added: str | None = None
     fit: Calibration | None = None
+    structure: StructureTest | None = None
+    chi2_p_value: float = float("nan")  # P(χ²_dof ≥ χ²) under the stated σ (noise="fixed")
+    screening: object = None  # the dictionary's Screening of this fit (None: not screened)
+    terms: list = field(default_factory=list)  # the TermCandidates it screened
 
     def as_json(self) -> dict:
         return {
@@ -123,12 +137,95 @@ class Step:
             "chi2": self.chi2,
             "dof": self.dof,
             "p_value": self.p_value,
+            "chi2_p_value": None if math.isnan(self.chi2_p_value) else self.chi2_p_value,
+            "structure": None if self.structure is None else self.structure.as_json(),
             "rms": self.rms,
             "heldout_rms": self.heldout_rms,
             "candidates": [c.as_json() for c in self.candidates],
+            "dictionary": None
+            if self.screening is None
+            else _screening_json(self.screening, self.terms),
             "decision": self.decision,
             "added": self.added,
         }
+
+
+@dataclass
+class Finding:
+    """A dictionary term found in the data: the `candidate` (term, legs), its fitted
+    `coefficient` and `std` (the term's units, one per key: one value when shared),
+    `delta_bic` (−(Δχ² − k ln n) of its screening: negative = evidence), `heldout_gain`
+    (fractional k-fold held-out RMS gain of the joint refit), `words`, and the `rivals` that
+    explain the data almost as well (an ambiguous finding)."""
+
+    candidate: TermCandidate
+    coefficient: np.ndarray
+    std: np.ndarray
+    delta_bic: float
+    heldout_gain: float
+    words: str
+    rivals: list = field(default_factory=list)
+    rival_coefficients: list = field(default_factory=list)  # linearised, one array each
+    # RMS commanded-pose error a controller avoids by compensating with the term
+    commanded_pose_gain: dict = field(default_factory=dict)
+    plan: str | None = None  # pose-plan file that tells it from its rivals (reports)
+
+    def as_json(self) -> dict:
+        return {
+            "term": self.candidate.term,
+            "legs": list(self.candidate.legs),
+            "shared": self.candidate.shared,
+            "coefficient": [float(v) for v in self.coefficient],
+            "std": [float(v) for v in self.std],
+            "units": TERMS[self.candidate.family].unit,
+            "delta_bic": self.delta_bic,
+            "heldout_gain": self.heldout_gain,
+            "words": self.words,
+            "ambiguous_with": [r.label for r in self.rivals],
+            "commanded_pose_gain": self.commanded_pose_gain,
+            "plan": self.plan,
+        }
+
+
+def _name(item) -> str:
+    """A member of an ambiguous group by its stable name: the term string or the effect."""
+    return item.term if isinstance(item, TermCandidate) else item
+
+
+def group_label(item) -> str:
+    """A member of an ambiguous group: a dictionary candidate, or a library effect name."""
+    return item.label if isinstance(item, TermCandidate) else f"{item} (library effect)"
+
+
+def _screening_json(scr, terms: list, top: int = 10) -> dict:
+    order = np.argsort(-np.where(scr.absorbed, -np.inf, scr.score))[:top]
+    return {
+        "threshold": scr.threshold,
+        "p_value": scr.p_value,
+        "top": [
+            {
+                "candidate": terms[i].label,
+                "delta_chi2": float(scr.delta_chi2[i]),
+                "score": float(scr.score[i]),
+                "kept": float(scr.kept[i]),
+            }
+            for i in order
+            if not scr.absorbed[i]
+        ],
+    }
+
+
+def _absorbed_terms(cands: list, scr) -> list:
+    """Term strings the model already reproduces: the shared form, or every one-leg form,
+    is absorbed."""
+    out = []
+    for term in dict.fromkeys(c.term for c in cands):
+        idx = [i for i, c in enumerate(cands) if c.term == term]
+        shared = [i for i in idx if cands[i].shared]
+        single = [i for i in idx if not cands[i].shared and len(cands[i].legs) == 1]
+        if (shared and scr.absorbed[shared].all()) or (single and scr.absorbed[single].all()):
+            out.append(term)
+    return out
 
 
 @dataclass
@@ -150,7 +247,13 @@ class Diagnosis:
     not_applicable: dict
     alpha: float
     model_effects: list = field(default_factory=list)  # base + selected: the final model
-    noise_mode: str = "fixed"  # "fixed": stated σ; "estimate": σ estimated per model
+    noise_mode: str = "estimate"  # "estimate": σ estimated per model; "fixed": stated σ
+    structure: StructureTest | None = None  # the final model's structure test
+    discovered: list = field(default_factory=list)  # Finding per dictionary term found
+    absorbed: list = field(default_factory=list)  # term strings the model reproduces
+    ambiguous: list = field(default_factory=list)  # groups of TermCandidate
+    screenings: list = field(default_factory=list, repr=False)  # Screening per round
+    discovery_alpha: float = 0.05
     setup: Setup = field(repr=False, default=None)
     data: Measurements = field(repr=False, default=None)
     nominal: Table = field(repr=False, default=None)
@@ -193,6 +296,18 @@ class Diagnosis:
     def as_json(self) -> dict:
         return {
             "selected": list(self.selected),
+            "discovered": [f.as_json() for f in self.discovered],
+            "absorbed": list(self.absorbed),
+            "ambiguous": [[_name(c) for c in group] for group in self.ambiguous],
+            "ambiguous_detail": [
+                {
+                    "candidates": [group_label(c) for c in group],
+                    "plan": next(
+                        (f.plan for f in self.discovered if f.candidate is group[0]), None
+                    ),
+                }
+                for group in self.ambiguous
+            ],
             "unexplained": bool(self.unexplained),
             "gain": {
                 "rms_before": self.rms_before,
@@ -209,11 +324,9 @@ class Diagnosis:
             "false_alarm_rate": self.alpha,
             "noise": {
                 "mode": self.noise_mode,
-                "structure_test": "chi2 against the stated sigma"
-                if self.noise_mode == "fixed"
-                else "not run: no stated sigma (the candidates' dBIC tests decide)",
                 "groups": None if self.final.noise is None else self.final.noise.as_json(),
             },
+            "structure": None if self.structure is None else self.structure.as_json(),
             "selected_params": {
                 name: {f: {"value": v.tolist(), "std": s.tolist()} for f, (v, s) in p.items()}
                 for name, p in ((n, self.effect_params(n)) for n in self.selected)
@@ -243,6 +356,12 @@ def diagnose(
     log=None,
     noise: str | None = None,
     sigma: dict | None = None,
+    draws: int = 1000,
+    discover: bool = True,
+    discovery_alpha: float = 0.05,
+    max_terms: int = 3,
+    ambiguity: float = 6.0,
+    priority: float = 10.0,
 ) -> Diagnosis:
     """Find which library effects the data need beyond the geometric model.
 
@@ -252,15 +371,25 @@ def diagnose(
     must be found); `library`: candidate effect names (default all of `EFFECTS`);
     `compensated`: without cmd_l columns, whether the controller compensated the spiral term
     (must be stated then, when the table has a lead: the same rule as
-    `calibrate`); `alpha`: false-alarm rate of the χ² structure test; `bic_threshold`:
+    `calibrate`); `alpha`: false-alarm rate of the structure test; `bic_threshold`:
     ΔBIC a candidate must beat; `min_gain`: fractional held-out RMS gain it must bring;
     `min_share`: share of the current excess χ² (χ² − dof) it must explain — an effect that
     only nibbles at a larger unexplained structure is not named as its cause;
-    `log`: callable for progress lines (default: stderr); `noise`: "fixed" (the stated σ:
-    the χ² structure test runs) or "estimate" (σ estimated for each model in turn; the χ²
-    test then has nothing to test against and `unexplained` is never claimed); default:
-    "fixed" when the data state σ for every measured cell, else "estimate"; `sigma`:
-    {column: σ (mm / rad)} stated by the user (overrides the file's σ columns).
+    `log`: callable for progress lines (default: stderr); `noise`: "estimate" (default: σ
+    estimated for each model in turn; stated σ set relative weights within a group and are
+    reported against the estimate) or "fixed" (the stated σ as they are, for ΔBIC and the
+    χ² p-value the steps report); the structure test and `unexplained` do not depend on
+    σ's scale in either mode; `sigma`: {column: σ (mm / rad)} stated by the user
+    (overrides the file's σ columns); `draws`: Monte Carlo draws of the structure test and
+    the dictionary threshold.
+
+    After the library, the discovery dictionary (`dictionary.py`; `discover=False` skips
+    it): each round screens every term against the current fit, reports those the model
+    already reproduces as `absorbed`, adds the strongest one that beats the dictionary-wide
+    threshold (false discoveries on noise-only data at rate `discovery_alpha`) and pays on
+    held-out rows, and refits everything jointly; up to `max_terms` rounds. Terms whose
+    penalised scores are within `ambiguity` of the best are reported with it as one
+    ambiguous finding.
     """
     if isinstance(nominal, Measurements) and isinstance(data, Table):
         warnings.warn(
@@ -275,12 +404,13 @@ def diagnose(
         if name not in EFFECTS:
             raise ValueError(f"unknown effect '{name}'; known: {', '.join(EFFECTS)}")
     n_sessions = len(data.sessions)
-    effects = {name: cls.null(n_sessions) for name, cls in EFFECTS.items()}
-    free_all = GEOMETRY + tuple(f for name in EFFECTS for f in params.effect_parameters(name))
+    effects = {name: cls.null(n_sessions) for name, cls in MODEL_EFFECTS.items()}
+    free_all = GEOMETRY + tuple(f for n in MODEL_EFFECTS for f in params.effect_parameters(n))
     st = setup(nominal, data, free_all, effects=effects, compensated=compensated, sigma=sigma)
     mask = st.mask
     all_rows = np.arange(len(data))
     fold_rows = make_folds(len(data), folds, seed)
+    block_rows = make_folds(len(data), folds, seed, grouped=True)  # terms: grouped folds
     not_applicable = {}
     for name in library:
         ok, why = applicable(name, nominal, data)
@@ -288,12 +418,23 @@ def diagnose(
             not_applicable[name] = why
     pool = [n for n in library if n not in not_applicable and n not in base]
 
-    def free_mask(model):
-        return st.free_mask(GEOMETRY + tuple(f for n in model for f in params.effect_parameters(n)))
+    index = {k: i for i, k in enumerate(st.names)}
+    term_keys: list = []  # parameter keys of the dictionary terms found so far
 
-    if noise is None:
-        noise = "fixed" if st.noise is not None and st.noise.stated.all() else "estimate"
+    def free_mask(model, keys=None):
+        """Geometry, the model's library effects, and the dictionary terms found (`keys`,
+        default those found so far): "discovered" frees only its found elements."""
+        blocks = tuple(f for n in model if n != "discovered" for f in params.effect_parameters(n))
+        fm = st.free_mask(GEOMETRY + blocks)
+        for k in term_keys if keys is None else keys:
+            fm[index[k]] = 1.0
+        return fm
+
+    noise = "estimate" if noise is None else noise
     stated = noise == "fixed"
+
+    def test(cal):
+        return structure_test(cal, st, alpha=alpha, draws=draws, seed=seed)
 
     def fit_model(model, theta0=None):
         """The current model, with the noise re-estimated for it unless σ is stated."""
@@ -304,14 +445,23 @@ def diagnose(
     current = fit_model(model)
     base_fit = current
     steps = []
+    found, absorbed, ambiguous, screenings = [], [], [], []
+    dict_cands = candidates(st, data) if discover else []
+    reach = float(np.max(np.abs(np.asarray(st.problem.s)))) if len(data) else 1.0
+
+    def same_units(cal, ref):  # factors expressing cal's σ-normalised residuals in ref's σ
+        return np.where(mask, ref.weight / np.where(mask, cal.weight, 1.0), 0.0)
+
     while True:
         # candidates are scored with the current model's weights (stated σ, or the σ
         # estimated for the current model), so their χ² compare with its χ²
-        p = _chi2_sf(current.chi2, current.dof) if stated else float("nan")
+        p_chi2 = _chi2_sf(current.chi2, current.dof) if stated else float("nan")
+        structure = test(current)
+        p = structure.p_value
         rms = _norm_rms(current, all_rows, mask)
         log(
-            f"model {['geometry'] + model}: chi2/dof = {current.chi2:.1f}/{current.dof}"
-            f" (p = {p:.3g}), RMS = {rms:.3f} sigma"
+            f"model {['geometry'] + model}: chi2/dof = {current.chi2:.1f}/{current.dof}, "
+            f"RMS = {rms:.3f} sigma; {structure.words()}"
         )
         cands = []
         for name in pool:
@@ -336,9 +486,28 @@ def diagnose(
                 f"{100 * c.heldout_gain:+6.1f} %  explains {100 * c.share:5.0f} % of the excess"
             )
         paying = [c for c in strong if c.heldout_gain > min_gain and c.share >= min_share]
-        # without stated σ the χ² test has nothing to test against: only the candidates'
-        # likelihood-ratio (ΔBIC) tests decide
-        consistent = (p >= alpha or not stated) and not strong
+        if len([m for m in model if m not in base and m != "discovered"]) >= max_effects:
+            paying = []
+        # the dictionary, screened against the same fit
+        scr, term = None, None
+        live = [c for c in dict_cands if not set(c.keys) & set(term_keys)]
+        if live and len(found) < max_terms:
+            scr = screen(
+                current, st, live, alpha=discovery_alpha, draws=draws, seed=seed + len(steps)
+            )
+            screenings.append(scr)
+            if not steps:
+                absorbed = _absorbed_terms(live, scr)
+            b = scr.best()
+            if b is not None and scr.score[b] > scr.threshold:
+                term = b
+            log(
+                f"  dictionary: best {live[b].label} score {scr.score[b]:.1f} against the "
+                f"threshold {scr.threshold:.1f}"
+                if b is not None
+                else "  dictionary: every term absorbed"
+            )
+        consistent = not structure.structure and not strong and term is None
         step = Step(
             ["geometry"] + model,
             current.chi2,
@@ -349,18 +518,106 @@ def diagnose(
             cands,
             "",
             fit=current,
+            structure=structure,
+            chi2_p_value=p_chi2,
+            screening=scr,
+            terms=live if scr is not None else [],
         )
         steps.append(step)
         if consistent:
             step.decision = "residuals consistent with the noise: stop"
             break
-        if not paying:
-            step.decision = "structure remains but no candidate pays on held-out data: stop"
+        lib = paying[0] if paying else None
+        trial = None
+        if term is not None:
+            cand = live[term]
+            trial = fit(
+                st,
+                free_mask(model, term_keys + list(cand.keys)),
+                noise=noise,
+                theta0=current.theta,
+            )
+        if term is not None and lib is not None:
+            # library effects keep priority: the term goes first only when it explains what
+            # the library effect leaves (it still beats the threshold on the library
+            # effect's fit) and the library effect adds nothing once the term is in; when
+            # neither adds to the other the data cannot tell them apart (reported), and
+            # the library effect is named
+            t_left = screen(lib.fit, st, [cand], draws=0).score[0] > scr.threshold
+            both = fit(
+                st,
+                free_mask(model + [lib.effect], term_keys + list(cand.keys)),
+                noise="fixed",
+                weight=trial.weight,
+                theta0=trial.theta,
+            )
+            l_left = (both.chi2 - trial.chi2) + (both.rank - trial.rank) * math.log(
+                both.n_obs
+            ) < -bic_threshold
+            log(
+                f"  library {lib.effect} vs term {cand.label}: the term "
+                f"{'adds' if t_left else 'adds nothing'} to {lib.effect}, {lib.effect} "
+                f"{'adds' if l_left else 'adds nothing'} to the term"
+            )
+            if not (t_left and not l_left):
+                if not t_left and not l_left:
+                    ambiguous.append([lib.effect, cand])
+                    log(f"     ambiguous: {lib.effect} (library) / {cand.label}")
+                term = None
+        if term is not None:
+            h_old = heldout_rms(current, block_rows, mask, rescale=same_units(current, trial))
+            gain = 1.0 - heldout_rms(trial, block_rows, mask) / h_old
+            if gain > 0:
+                pick = [trial.names.index(k) for k in cand.keys]
+                coef, std = trial.value[pick], trial.std[pick]
+                rivals = [
+                    live[i]
+                    for i in np.argsort(-scr.score)
+                    if i != term
+                    and not scr.absorbed[i]
+                    and live[i].term != cand.term
+                    and scr.score[term] - scr.score[i] < ambiguity
+                    and scr.score[i] > scr.threshold
+                ]
+                finding = Finding(
+                    cand,
+                    coef,
+                    std,
+                    float(-scr.score[term]),
+                    float(gain),
+                    words(cand.term, cand.legs, cand.shared, coef, reach)
+                    + f"; held-out RMS {-100 * gain:+.1f} %",
+                    rivals,
+                    [np.asarray(scr.coefficient[live.index(r)]) for r in rivals],
+                    compensation_gain(trial, st, data, cand, coef),
+                )
+                g = finding.commanded_pose_gain
+                finding.words += (
+                    f"; compensating with it moves the commanded pose by "
+                    f"{1e3 * g['translation_rms_mm']:.1f} µm / "
+                    f"{g['rotation_rms_arcsec']:.2f}″ RMS"
+                )
+                step.added = f"term {cand.label}"
+                step.decision = f"add the term {cand.label}"
+                log(f"  -> discovered: {finding.words}")
+                if rivals:
+                    log(f"     ambiguous with {', '.join(r.label for r in rivals)}")
+                    ambiguous.append([cand] + rivals)
+                found.append(finding)
+                term_keys += list(cand.keys)
+                if "discovered" not in model:
+                    model.append("discovered")
+                current = trial
+                continue
+            log(f"  dictionary: {cand.label} does not pay on held-out rows ({100 * gain:+.1f} %)")
+        if lib is None:
+            step.decision = (
+                "structure remains but no candidate pays on held-out data: stop"
+                if paying or strong or term is not None or structure.structure
+                else "no candidate pays: stop"
+            )
             break
-        if len(model) - len(base) >= max_effects:
-            step.decision = f"reached max_effects = {max_effects}: stop"
-            break
-        best = paying[0]
+        best = lib
         step.added = best.effect
         step.decision = f"add {best.effect}"
         log(f"  -> add {best.effect}")
@@ -368,16 +625,25 @@ def diagnose(
         current = best.fit if stated else fit_model(model, theta0=best.fit.theta)
         heldout_current = best.heldout_rms
     final = current
+    for f in found:  # the coefficients of the final, joint fit
+        pick = [final.names.index(k) for k in f.candidate.keys]
+        f.coefficient, f.std = final.value[pick], final.std[pick]
     heldout_current = heldout_rms(final, fold_rows, mask)
     # before/after in the same units: the final model's σ (stated, or estimated for it)
     to_final = np.where(mask, final.weight / np.where(mask, base_fit.weight, 1.0), 0.0)
     heldout_before = heldout_rms(base_fit, fold_rows, mask, rescale=to_final)
-    p_final = _chi2_sf(final.chi2, final.dof) if stated else float("nan")
+    final_structure = steps[-1].structure if steps[-1].fit is final else test(final)
     return Diagnosis(
-        selected=[m for m in model if m not in base],
+        selected=[m for m in model if m not in base and m != "discovered"],
+        discovered=found,
+        absorbed=absorbed,
+        ambiguous=ambiguous,
+        screenings=screenings,
+        discovery_alpha=discovery_alpha,
         model_effects=list(model),
         noise_mode=noise,
-        unexplained=bool(stated and p_final < alpha),
+        structure=final_structure,
+        unexplained=final_structure.structure,
         steps=steps,
         base=base_fit,
         final=final,

@@ -11,6 +11,7 @@ from .._calibration.heldout import heldout_rms, make_folds
 from .._calibration.measurements import Measurements
 from .._calibration.model_file import fitted_model, save_fitted_model
 from .._calibration.posterior import PosteriorResult, PredictiveBands
+from .._discovery.structure import StructureTest
 from .._table import Table
 from .posterior import corner_plot, plot_bands
 
@@ -37,9 +38,11 @@ def write_calibration_report(
     *,
     posterior: PosteriorResult | None = None,
     bands: PredictiveBands | None = None,
+    structure: StructureTest | None = None,
 ) -> list[Path]:
     """Write `calibrated_table.toml` and `report.md` (and `corner.png`, `bands.png` with a
-    posterior) into `out`; returns the paths written."""
+    posterior) into `out`; returns the paths written. `structure`: the structure test of
+    the fit's residuals, reported when given."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     free = ", ".join(st.layout.free)
@@ -75,6 +78,17 @@ def write_calibration_report(
             f"RMS {heldout_rms(cal, folds, st.mask):.3f} σ, against {cal.rms_sigma_after:.3f} σ "
             "on the fitted rows (1.0 = the instrument noise).",
             "",
+            *(
+                []
+                if structure is None
+                else [
+                    f"Residual structure: {structure.words()} (neighbour-agreement test at "
+                    f"false-alarm rate {structure.alpha:g}, independent of σ's scale"
+                    + ("; `jaxtable diagnose` names library causes" if structure.structure else "")
+                    + ").",
+                    "",
+                ]
+            ),
         ]
     )
     paths = [out / "calibrated_table.toml", out / "report.md"]

@@ -6,8 +6,16 @@ from pathlib import Path
 import numpy as np
 
 from .. import _params as vocab
+from .._calibration.measurements import Measurements, save_measurements
 from .._calibration.model_file import save_fitted_model
-from .._discovery.diagnose import SIGNATURE_OF, Diagnosis, leg_residuals, signatures
+from .._discovery.diagnose import (
+    SIGNATURE_OF,
+    Diagnosis,
+    group_label,
+    leg_residuals,
+    signatures,
+)
+from .._discovery.dictionary import TERMS, discrimination_plan
 from .._effects import EFFECTS
 from .figures import pyplot
 
@@ -84,6 +92,31 @@ def _column_figure(diag: Diagnosis, path: Path) -> Path:
     return path
 
 
+TERM_SIGNATURE = {
+    "s^2": "extension s (mm)",
+    "s^3": "extension s (mm)",
+    "d*s": "extension s (mm)",
+    "T*s": "temperature (°C)",
+    "t": "row",
+    "session*s": "session",
+}
+
+
+def _signature_of(added: str, sig: dict) -> tuple[str, np.ndarray]:
+    """(name, (N, 6) values) of the variable a step's addition responds to: a library
+    effect's signature, or a dictionary term's ("term s[5] on leg 2": leg 5's extension)."""
+    if not added.startswith("term "):
+        key = SIGNATURE_OF[added]
+        return key, sig[key]
+    term = added.split()[1]
+    if term.startswith("s["):
+        j = int(term[2:-1])
+        s = sig["extension s (mm)"][:, j - 1]
+        return f"extension of leg {j} (mm)", np.repeat(s[:, None], 6, axis=1)
+    key = TERM_SIGNATURE[term]
+    return key, sig[key]
+
+
 def effect_figures(diag: Diagnosis, out: Path) -> list[Path]:
     """For each selected effect: leg residuals against its signature before it was added
     and with the final model."""
@@ -97,8 +130,7 @@ def effect_figures(diag: Diagnosis, out: Path) -> list[Path]:
         if step.added is None:
             continue
         before = leg_residuals(diag, step.fit)
-        key = SIGNATURE_OF[step.added]
-        x = sig[key]
+        key, x = _signature_of(step.added, sig)
         fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
         for ax, res, title in (
             (axes[0], before, f"model {' + '.join(step.model)}"),
@@ -111,9 +143,9 @@ def effect_figures(diag: Diagnosis, out: Path) -> list[Path]:
             ax.set_xlabel(key)
             ax.set_title(title, fontsize=9)
         axes[0].set_ylabel("leg residual (µm)")
-        fig.suptitle(f"{step.added}: residuals against its signature, before and after")
+        fig.suptitle(f"{step.added}: leg residuals against its signature, before and after")
         fig.tight_layout()
-        p = out / f"effect_{step.added}.png"
+        p = out / f"effect_{_slug(step.added)}.png"
         fig.savefig(p, dpi=110)
         plt.close(fig)
         paths.append(p)
@@ -131,6 +163,62 @@ def _fmt_params(params: dict) -> str:
     return "; ".join(parts)
 
 
+def _dictionary_lines(diag: Diagnosis) -> list[str]:
+    """The "beyond the library" section: terms found, absorbed, ambiguous."""
+    if not diag.screenings:
+        return []
+    lines = ["## Beyond the library: the discovery dictionary", ""]
+    thresholds = ", ".join(f"{s.threshold:.1f}" for s in diag.screenings)
+    lines.append(
+        "Each round screens every dictionary term against the current fit (score: Δχ² in "
+        "units of the fit's σ minus k·ln n) and adds the best one only when it beats the "
+        "dictionary-wide threshold (noise-only data give any discovery in "
+        f"{100 * diag.discovery_alpha:.0f} % of data sets; thresholds this run: "
+        f"{thresholds}) and pays on held-out rows."
+    )
+    lines.append("")
+    if diag.discovered:
+        lines += [
+            "| term | legs | coefficient ± σ | ΔBIC | held-out gain |",
+            "|---|---|---|---|---|",
+        ]
+        for f in diag.discovered:
+            unit = TERMS[f.candidate.family].unit
+            coef = ", ".join(f"{v:.3g} ± {e:.2g}" for v, e in zip(f.coefficient, f.std))
+            lines.append(
+                f"| `{f.candidate.term}` | {f.candidate.label} | {coef} {unit} | "
+                f"{f.delta_bic:.1f} | {100 * f.heldout_gain:+.1f} % |"
+            )
+        lines.append("")
+        lines += [f"- {f.words}" for f in diag.discovered] + [""]
+    else:
+        lines += ["No dictionary term beats the threshold.", ""]
+    if diag.absorbed:
+        lines += [
+            "Absorbed (within this workspace the fitted model already reproduces them; they "
+            "would extrapolate wrongly outside it): " + ", ".join(f"`{t}`" for t in diag.absorbed),
+            "",
+        ]
+    plans = {id(f.candidate): f.plan for f in diag.discovered if f.plan}
+    for group in diag.ambiguous:
+        plan = plans.get(id(group[0]))
+        library = [g for g in group if isinstance(g, str)]
+        lines.append(
+            "Ambiguous: "
+            + " / ".join(group_label(g) for g in group)
+            + " explain the data almost equally"
+            + (f"; poses that tell them apart: `{plan}`" if plan else "")
+            + (
+                f"; {library[0]} is named (library effects keep priority): record data where "
+                "the two differ (e.g. temperature that does not follow time)"
+                if library
+                else ""
+            )
+            + "."
+        )
+    return lines
+
+
 def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
     lines = [
         f"# Diagnosis of {source}",
@@ -141,13 +229,17 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         "session and target offset.",
         "",
         f"**Selected effects:** {', '.join(diag.selected) if diag.selected else 'none'}. "
-        f"**Unexplained structure:** {'yes' if diag.unexplained else 'no'} "
         + (
-            f"(χ² test against the stated σ at false-alarm rate {diag.alpha:g})."
-            if diag.noise_mode == "fixed"
-            else "(not tested: no stated σ; σ was estimated for each model, and only the "
-            "candidates' ΔBIC tests decided)."
-        ),
+            "**Discovered terms:** " + "; ".join(f.candidate.label for f in diag.discovered) + ". "
+            if diag.discovered
+            else ""
+        )
+        + f"**Unexplained structure:** {'yes' if diag.unexplained else 'no'}: "
+        + (diag.structure.words() if diag.structure is not None else "not tested")
+        + f" (neighbour-agreement test, false-alarm rate {diag.alpha:g}, independent of σ's "
+        "scale; σ "
+        + ("as stated" if diag.noise_mode == "fixed" else "estimated for each model")
+        + ").",
         "",
         *[f"- {line}" for line in (diag.final.noise.lines() if diag.final.noise else [])],
         "",
@@ -169,9 +261,10 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         lines += [
             f"### Step {k + 1}: model {' + '.join(step.model)}",
             "",
-            f"χ²/dof = {step.chi2:.1f}/{step.dof} (p = {step.p_value:.3g}), "
-            f"RMS {step.rms:.3f} σ, held-out RMS {step.heldout_rms:.3f} σ. "
-            f"Decision: {step.decision}.",
+            f"χ²/dof = {step.chi2:.1f}/{step.dof}, "
+            f"RMS {step.rms:.3f} σ, held-out RMS {step.heldout_rms:.3f} σ; "
+            + (step.structure.words() if step.structure is not None else "")
+            + f". Decision: {step.decision}.",
             "",
             "| candidate | ΔBIC | held-out gain | share of excess χ² | fitted parameters |",
             "|---|---|---|---|---|",
@@ -182,6 +275,7 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
                 f"{100 * c.share:.0f} % | {_fmt_params(c.params)} |"
             )
         lines.append("")
+    lines += _dictionary_lines(diag)
     if diag.not_applicable:
         lines += [
             "Not applicable to these data: "
@@ -211,6 +305,10 @@ def _finite(x):
     return x
 
 
+def _slug(text: str) -> str:
+    return "".join(ch if ch.isalnum() else "-" for ch in text).strip("-")
+
+
 def write_report(diag: Diagnosis, out: Path, source: str, json_path: Path | None = None):
     """Write report.md, figures and (optionally) the JSON into `out`; return the paths."""
     out = Path(out)
@@ -218,6 +316,18 @@ def write_report(diag: Diagnosis, out: Path, source: str, json_path: Path | None
     figures = [signature_figure(diag, out / "residual_signatures.png")]
     figures += effect_figures(diag, out)
     figures = [p for p in figures if p is not None]
+    plans = []
+    for f in (f for f in diag.discovered if f.rivals):
+        poses = discrimination_plan(
+            diag.nominal,
+            diag.data,
+            [f.candidate] + f.rivals,
+            [f.coefficient] + f.rival_coefficients,
+        )
+        name = "plan_" + "_vs_".join(_slug(c.label) for c in [f.candidate] + f.rivals) + ".csv"
+        save_measurements(Measurements(poses, np.full_like(poses, np.nan)), out / name)
+        plans.append(name)
+        f.plan = name
     (out / "report.md").write_text(markdown(diag, figures, source))
     model_path = save_fitted_model(
         diag.fitted_model(),
@@ -229,4 +339,4 @@ def write_report(diag: Diagnosis, out: Path, source: str, json_path: Path | None
         json_path = Path(json_path)
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(_finite(diag.as_json()), indent=2, allow_nan=False))
-    return [out / "report.md", model_path] + figures
+    return [out / "report.md", model_path] + figures + [out / p for p in plans]

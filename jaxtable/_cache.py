@@ -1,0 +1,43 @@
+"""JAX's persistent compilation cache for jaxtable's programs.
+
+A calibration or a diagnosis spends most of its first run compiling; the compiled programs
+depend only on the shapes of the data (rows, measured columns), so a second run on a file
+of the same shape can load them from disk instead. The command line turns the cache on by
+default (`jaxtable --no-cache VERB ...` turns it off); library users call
+`enable_compilation_cache()` once.
+
+Where: `$JAXTABLE_CACHE_DIR` if set (the value `off` turns the cache off), else
+`$XDG_CACHE_HOME/jaxtable/jax`, else `~/.cache/jaxtable/jax`. Only programs that took at
+least half a second to compile are stored. The directory may be deleted at any time.
+"""
+
+import os
+from pathlib import Path
+
+import jax
+
+
+def cache_directory() -> Path | None:
+    """The cache directory the environment asks for (None: turned off)."""
+    env = os.environ.get("JAXTABLE_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in ("off", "0", "none", "") else Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "jaxtable" / "jax"
+
+
+def enable_compilation_cache(directory: str | os.PathLike | None = None) -> Path | None:
+    """Turn on the persistent compilation cache in `directory` (default `cache_directory()`);
+    returns the directory used, or None when it is turned off or cannot be created (the
+    programs are then compiled as usual)."""
+    path = Path(directory) if directory is not None else cache_directory()
+    if path is None:
+        return None
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path

@@ -1,0 +1,350 @@
+"""The discovery dictionary: candidate terms beyond the effect library, their screening with a
+false-discovery rate calibrated for the whole dictionary, and the words a report uses.
+
+Every term adds length to a leg (`jaxtable._effects.Discovered` holds their coefficients,
+so a found term is a model term like any effect). A candidate is a term on a set of legs:
+
+- shared: one coefficient for all legs (`s^2` on legs 1-6, shared);
+- one leg: the term on leg i only;
+- per leg: six coefficients, one per leg;
+- crosstalk `s[j]`: leg j's extension on one other leg i, or on all five others (shared).
+
+Screening (`screen`) is the score test of each candidate against the current fit, on its
+linearisation: with e the whitened residuals (noise groups rescaled by VCE, as the
+structure test does) and X the candidate's Jacobian columns, X⊥ = (I − H) X is what the
+fitted model cannot already do with its own parameters. A candidate whose ‖X⊥‖ is below
+`absorbed_below` × ‖X‖ and whose score (below) does not beat the threshold is *absorbed*:
+within this workspace the geometry (and the frames and effects already in the model)
+reproduce it, so the data cannot tell it apart and it would extrapolate wrongly outside.
+Every candidate gets Δχ² = ‖P_X⊥ e‖² / s² (s² = ‖e‖² / dof, so σ's
+scale cancels) and a penalised score Δχ² − k ln(n_obs) (k coefficients; BIC's penalty,
+so per-leg terms pay for their six numbers).
+
+Threshold: the largest penalised score over the whole dictionary has, under "nothing to
+find", the law of the same maximum for Monte Carlo residuals (I − H) z (z with the rows'
+correlation, masked like the data): exact for the linearised model with Gaussian noise, and
+the geometry refit is inside it through H. A candidate is a discovery only when its score
+beats that law's 1 − `alpha` quantile, so noise-only data yield any discovery in `alpha`
+(default 5 %) of data sets, however many terms the dictionary holds.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._calibration.fit import Calibration, Setup
+from .._calibration.measurements import Measurements
+from .._calibration.noise import fit_basis
+from .structure import whitened
+
+
+@dataclass(frozen=True)
+class Term:
+    """A family of the dictionary: its DESIGN.md string, the `Discovered` fields that hold
+    it, its formula and units, what data it needs, and the words of a finding."""
+
+    name: str
+    field: str
+    formula: str
+    unit: str
+    needs: str | None
+    cause: str
+
+
+TERMS = {
+    t.name: t
+    for t in (
+        Term("s^2", "s2", "c_i s_i²", "1/mm", None, "screw sag or nonlinearity?"),
+        Term("s^3", "s3", "c_i s_i³", "1/mm²", None, "nonlinear screw or encoder?"),
+        Term("s[j]", "cross", "c_ij s_j", "mm/mm", None, "cable or encoder crosstalk?"),
+        Term("d*s", "ds", "c_i d_i s_i", "mm/mm", None, "lead that depends on load direction?"),
+        Term("T*s", "Ts", "c_i (T − 20 °C) s_i", "1/K", "temperature", "thermal scale?"),
+        Term("t", "t", "c_i t (t = 0..1 over the run)", "mm", None, "warm-up or drift?"),
+        Term("session*s", "session_s", "c_ki s_i (k ≥ 1)", "mm/mm", "session", "re-homing?"),
+    )
+}
+
+
+@dataclass(frozen=True)
+class TermCandidate:
+    """One candidate: `term` (a DESIGN.md string, `s[j]` with j filled in), `legs` (1-based
+    legs the coefficient acts on), `keys` (parameter keys in `Setup.names`), `shared`."""
+
+    term: str
+    legs: tuple
+    keys: tuple
+    shared: bool
+
+    @property
+    def label(self) -> str:
+        if self.shared:
+            return f"{self.term} on legs {_legs_text(self.legs)} (shared)"
+        if len(self.legs) == 1:
+            return f"{self.term} on leg {self.legs[0]}"
+        return f"{self.term} on legs {_legs_text(self.legs)} (per leg)"
+
+    def __str__(self) -> str:
+        return self.label
+
+    @property
+    def family(self) -> str:
+        return "s[j]" if self.term.startswith("s[") else self.term
+
+
+def _legs_text(legs) -> str:
+    legs = list(legs)
+    if legs == list(range(legs[0], legs[-1] + 1)) and len(legs) > 2:
+        return f"{legs[0]}-{legs[-1]}"
+    return ", ".join(str(i) for i in legs)
+
+
+def applicable_terms(data: Measurements) -> dict:
+    """{term: reason} for the terms these data cannot show (no temperature variation, one
+    session)."""
+    out = {}
+    temp = data.temperature
+    if temp is None or not np.isfinite(temp).any() or np.nanmax(temp) - np.nanmin(temp) < 0.5:
+        out["T*s"] = "temperature varies by less than 0.5 °C (or is absent)"
+    if len(data.sessions) < 2:
+        out["session*s"] = "one session only"
+    return out
+
+
+def candidates(st: Setup, data: Measurements) -> list[TermCandidate]:
+    """Every candidate of the dictionary these data can show."""
+    skip = applicable_terms(data)
+    names = set(st.names)
+    p = "discovered."
+    out = []
+    legs6 = tuple(range(1, 7))
+    n_later = len(data.sessions) - 1
+    for term in TERMS.values():
+        if term.name in skip:
+            continue
+        f = term.field
+        if term.name == "s[j]":
+            for j in legs6:
+                others = tuple(i for i in legs6 if i != j)
+                out.append(TermCandidate(f"s[{j}]", others, (f"{p}cross_all[{j}]",), True))
+                for i in others:
+                    out.append(TermCandidate(f"s[{j}]", (i,), (f"{p}cross[{i}].{j}",), False))
+            continue
+        if term.name == "session*s":
+            later = range(1, n_later + 1)
+            out.append(
+                TermCandidate(term.name, legs6, tuple(f"{p}{f}_all[{k}]" for k in later), True)
+            )
+            for i in legs6:
+                keys = tuple(f"{p}{f}[{k}].{i}" for k in later)
+                out.append(TermCandidate(term.name, (i,), keys, False))
+            continue
+        out.append(TermCandidate(term.name, legs6, (f"{p}{f}_all",), True))
+        for i in legs6:
+            out.append(TermCandidate(term.name, (i,), (f"{p}{f}[{i}]",), False))
+        out.append(TermCandidate(term.name, legs6, tuple(f"{p}{f}[{i}]" for i in legs6), False))
+    return [c for c in out if all(k in names for k in c.keys)]
+
+
+@dataclass
+class Screening:
+    """Scores of the candidates against one fit (see the module docstring).
+
+    `candidates`; `delta_chi2`, `score` (penalised), `kept` (‖X⊥‖/‖X‖) per candidate;
+    `absorbed` (bool per candidate); `threshold`: the 1 − alpha quantile of the null law of
+    the largest score; `p_value`: of the observed largest score; `coefficient` (per
+    candidate: the linearised estimate, parameter units, tuple over its keys)."""
+
+    candidates: list
+    delta_chi2: np.ndarray
+    score: np.ndarray
+    kept: np.ndarray
+    absorbed: np.ndarray
+    threshold: float
+    p_value: float
+    coefficient: list = field(default_factory=list)
+
+    def best(self) -> int | None:
+        """Index of the highest-scoring candidate that is not absorbed (None if none)."""
+        live = np.flatnonzero(~self.absorbed)
+        return None if live.size == 0 else int(live[np.argmax(self.score[live])])
+
+
+def screen(
+    cal: Calibration,
+    st: Setup,
+    cands: list,
+    *,
+    alpha: float = 0.05,
+    draws: int = 1000,
+    absorbed_below: float = 0.1,
+    seed: int = 0,
+    tol: float = 1e-6,
+) -> Screening:
+    """Score every candidate in `cands` against fit `cal` of set-up `st`, with the threshold
+    that keeps the dictionary-wide false-discovery rate at `alpha` (module docstring;
+    `draws=0`: scores only, threshold NaN)."""
+    w = whitened(cal, st, tol)
+    index = {k: i for i, k in enumerate(st.names)}
+    Jf = np.asarray(cal.jacobian_full) * w.factor.reshape(-1, 1)
+    n_obs = int(w.mask.sum())
+    penalty = np.log(max(n_obs, 2))
+    e = w.e.reshape(-1)
+    bases, kept, coefs = [], [], []
+    for c in cands:
+        X = Jf[:, [index[k] for k in c.keys]]
+        Xp = X - w.U @ (w.U.T @ X)
+        nx = np.linalg.norm(X)
+        kept.append(np.linalg.norm(Xp) / nx if nx > 0 else 0.0)
+        Q = fit_basis(Xp, 1e-8) if nx > 0 and np.linalg.norm(Xp) > 0 else np.zeros((len(e), 0))
+        bases.append(Q)
+        beta, *_ = np.linalg.lstsq(Xp, -e, rcond=1e-10)  # residual = model − measured
+        coefs.append(tuple(float(b) for b in beta))
+    kept = np.asarray(kept)
+    # a term the model reproduces to 1e-3 of its norm cannot be estimated at all
+    absorbed = kept < 1e-3
+    k = np.array([len(c.keys) for c in cands], float)
+    Qall = np.concatenate(bases, axis=1) if bases else np.zeros((len(e), 0))
+    bounds = np.cumsum([0] + [q.shape[1] for q in bases])
+
+    def scores(res):  # res (b, M) -> Δχ² (b, C)
+        proj = res @ Qall
+        sq = proj**2
+        parts = np.stack(
+            [sq[:, bounds[i] : bounds[i + 1]].sum(axis=1) for i in range(len(cands))], axis=1
+        )
+        scale = np.sum(res**2, axis=1, keepdims=True) / max(w.dof, 1.0)
+        return parts / scale
+
+    d_obs = scores(e[None, :])[0]
+    score = d_obs - k * penalty
+    live = ~absorbed
+    null_max = []
+    for z in w.null_draws(draws, seed):
+        sc = scores(z.reshape(len(z), -1)) - k * penalty
+        null_max.append(np.where(live, sc, -np.inf).max(axis=1))
+    null_max = np.concatenate(null_max) if null_max else np.zeros(0)
+    threshold = float(np.quantile(null_max, 1.0 - alpha)) if draws else float("nan")
+    # absorbed: almost all of the term is what the model already does, and what is left
+    # has no evidence (a term that is 99 % reproduced yet still significant is tested)
+    absorbed = absorbed | ((kept < absorbed_below) & ~(score > threshold))
+    live = ~absorbed
+    top = score[live].max() if live.any() else -np.inf
+    p = float((1 + np.sum(null_max >= top)) / (draws + 1)) if draws else float("nan")
+    return Screening(list(cands), d_obs, score, kept, absorbed, threshold, p, coefs)
+
+
+def words(term: str, legs: tuple, shared: bool, coef: np.ndarray, reach: float) -> str:
+    """A sentence a test engineer can act on: what the term does, on which legs, how much at
+    the data's reach (`reach`: the largest |extension| in the data, mm)."""
+    family = "s[j]" if term.startswith("s[") else term
+    cause = TERMS[family].cause
+    c = np.atleast_1d(np.asarray(coef, float))
+    where = (
+        f"legs {_legs_text(legs)} (shared)"
+        if shared
+        else (f"leg {legs[0]}" if len(legs) == 1 else f"legs {_legs_text(legs)}")
+    )
+    vals = ", ".join
+    if family == "s^2":
+        what = "length error grows with extension², " + vals(
+            f"{1e3 * v * reach**2:+.1f} µm" for v in c
+        )
+        what += f" at {reach:.0f} mm"
+    elif family == "s^3":
+        what = "length error grows with extension³, " + vals(
+            f"{1e3 * v * reach**3:+.1f} µm" for v in c
+        )
+        what += f" at ±{reach:.0f} mm"
+    elif family == "s[j]":
+        j = term[2:-1]
+        rate = vals(f"{1e3 * v:+.2f}" for v in c)
+        return f"{where} follows leg {j}'s extension at {rate} µm/mm ({cause})"
+    elif family == "d*s":
+        what = "scale differs with the direction of travel, " + vals(
+            f"{2e5 * v:+.1f} µm per 100 mm" for v in c
+        )
+        what += " between extending and retracting"
+    elif family == "T*s":
+        what = "scale grows with temperature, " + vals(f"{1e6 * v:+.1f} ppm/K" for v in c)
+    elif family == "t":
+        what = "length drifts over the run, " + vals(f"{1e3 * v:+.1f} µm" for v in c)
+        what += " from first to last stop"
+    else:  # session*s
+        what = "scale changes between sessions, " + vals(f"{1e6 * v:+.0f} ppm" for v in c)
+    return f"{where}: {what} ({cause})"
+
+
+def term_effect(cand: TermCandidate, coefficient, n_sessions: int = 1):
+    """A `Discovered` effect holding `coefficient` (one value per key of `cand`) and zero
+    elsewhere: the candidate as a model term."""
+    from .._effects import Discovered
+
+    values = {f: np.array(getattr(Discovered.null(n_sessions), f)) for f in Discovered.fields}
+    for key, v in zip(cand.keys, np.atleast_1d(coefficient)):
+        name, _, rest = key.partition(".")[2].partition("[")
+        if not rest:
+            values[name] = np.asarray(float(v))
+            continue
+        i, _, j = rest.partition("]")
+        idx = (int(i) - 1,) + ((int(j.lstrip(".")) - 1,) if j else ())
+        values[name][idx] = float(v)
+    return Discovered(**values)
+
+
+def discrimination_plan(
+    nominal, data: Measurements, group: list, coefficients: list, n: int = 20, seed: int = 0
+) -> np.ndarray:
+    """(n, 6) commanded poses (mm / rad) that tell the candidates of an ambiguous `group`
+    apart: among 4000 reachable poses drawn in the box of the data's commanded poses
+    (widened by 20 %), those where the candidates, each with its fitted `coefficients`,
+    predict leg lengths that differ most (largest max-over-legs difference between any two
+    of them), at the data's mean temperature, extending, mid-run, first session."""
+    import jax
+    import jax.numpy as jnp
+
+    from .._api import actuator_command, reachable
+    from .._context import Context
+
+    cmd = np.asarray(data.cmd_pose)
+    centre, half = (cmd.max(0) + cmd.min(0)) / 2, 0.6 * np.ptp(cmd, axis=0) + 1e-9
+    rng = np.random.default_rng(seed)
+    poses = centre + rng.uniform(-1, 1, (4000, 6)) * half
+    poses = poses[np.asarray(reachable(nominal, poses))]
+    temp = data.temperature
+    T = 20.0 if temp is None or not np.isfinite(temp).any() else float(np.nanmean(temp))
+    ctx = Context(1.0, T, 0.0, 0, 0.5)
+    s = np.asarray(actuator_command(nominal, poses, False)) - np.asarray(nominal.zero_lengths)
+    preds = []
+    for cand, coef in zip(group, coefficients):
+        eff = term_effect(cand, coef, len(data.sessions))
+        f = jax.vmap(lambda q, si: eff(nominal, q, si, ctx))(jnp.asarray(poses), jnp.asarray(s))
+        preds.append(np.asarray(f))
+    spread = np.max(np.ptp(np.stack(preds), axis=0), axis=1)  # (P,) mm
+    return poses[np.argsort(-spread)[:n]]
+
+
+def compensation_gain(cal: Calibration, st: Setup, data: Measurements, cand, coef) -> dict:
+    """What compensating with a found term buys the commanded pose: the RMS pose error, at
+    the data's commanded poses and contexts, of a controller that compensates with the fitted
+    model minus the term, on hardware that has it (with the term the error is zero by
+    construction). {"translation_rms_mm", "rotation_rms_arcsec"}."""
+    import jax
+
+    from .._api import actuator_command, forward, pose_error
+    from .._rotation import ARCSEC_PER_RAD
+
+    effects = dict(cal.effects)
+    term = term_effect(cand, coef, len(data.sessions))
+    without = dict(effects)
+    without["discovered"] = jax.tree.map(lambda a, b: a - b, effects["discovered"], term)
+    poses = np.asarray(data.cmd_pose)
+    ctx = st.problem.ctx
+    lengths = actuator_command(cal.table, poses, effects=without, context=ctx, check=False)
+    reached = forward(cal.table, lengths, effects=effects, context=ctx, guess=poses)
+    err = np.asarray(pose_error(reached, poses))
+    return {
+        "translation_rms_mm": float(np.sqrt(np.mean(np.sum(err[:, :3] ** 2, axis=1)))),
+        "rotation_rms_arcsec": float(
+            np.sqrt(np.mean(np.sum(err[:, 3:] ** 2, axis=1))) * ARCSEC_PER_RAD
+        ),
+    }

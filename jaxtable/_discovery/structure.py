@@ -1,0 +1,231 @@
+"""A structure test that does not trust σ: do the residuals of stops that are close to each
+other agree more than the noise allows?
+
+After a fit, pure measurement noise leaves residuals e = (I − H) ε: no two stops share
+anything but what the projection (I − H) puts between them. An effect the model lacks is a
+smooth function of something the stops have in common — the legs' extensions, the direction
+they travelled, the time they were measured, the temperature — so stops that are neighbours
+in that variable have residuals that point the same way. The statistic of a feature family f
+is the neighbour agreement
+
+    A_f = Σ_i Σ_{j ∈ NN_k(i)} e_i · e_j / (k Σ_i |e_i|²)
+
+(e_i the row's whitened residual vector, NN_k(i) its k nearest other stops in the family's
+feature space). A_f is a ratio: any common scale of σ cancels, so a σ stated 25 % too small
+or too large changes nothing; the relative scale of the noise groups (positions, angles,
+instruments) is re-estimated from the fit's own residuals (variance-component estimation)
+before the test, and the correlation between the columns of one row is estimated from the
+residuals too, so a tracker whose x and pitch noise are correlated raises no alarm.
+
+Null law: the same statistics for Monte Carlo residuals (I − H) z, z drawn with that
+correlation and masked like the data (H the hat matrix of the fit's weighted Jacobian, the
+linearisation of the fitted model: exact for a linear model with Gaussian noise). The
+families are combined by the largest standardised statistic max_f (A_f − mean_f) / std_f,
+whose null law comes from the same draws, so the test's false-alarm rate is `alpha` for the
+whole family set (not per family).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._calibration.fit import Calibration, Setup
+from .._calibration.noise import fit_basis, group_scales, redundancy
+
+# feature families: the words a report uses for each
+FAMILIES = {
+    "extensions": "the legs' extensions",
+    "extensions, direction": "the legs' extensions and direction of travel",
+    "time": "time (neighbouring stops of a session)",
+    "temperature": "temperature",
+}
+
+
+@dataclass(frozen=True)
+class StructureTest:
+    """Outcome of `structure_test`.
+
+    - `p_value`: of the family-wise statistic (max standardised agreement); `structure`:
+      p_value < alpha; `alpha`: the false-alarm rate;
+    - `families`: {family: {"agreement": A_f, "null_mean", "null_std", "z", "p_value"}};
+    - `hints`: families whose own p-value is below alpha, strongest first (what the
+      residuals depend on: a structure seen but not necessarily named);
+    - `draws`, `neighbours`: Monte Carlo draws and k.
+    """
+
+    p_value: float
+    alpha: float
+    families: dict
+    hints: tuple
+    draws: int
+    neighbours: int
+
+    @property
+    def structure(self) -> bool:
+        return bool(self.p_value < self.alpha)
+
+    def words(self) -> str:
+        if not self.structure:
+            return (
+                f"no structure seen: neighbouring stops' residuals agree no more than noise "
+                f"(p = {self.p_value:.3g})"
+            )
+        hints = ", ".join(FAMILIES[h] for h in self.hints) or "no single family"
+        return (
+            f"structure remains (p = {self.p_value:.3g}): residuals of stops close in "
+            f"{hints} agree more than noise allows"
+        )
+
+    def as_json(self) -> dict:
+        return {
+            "test": "neighbour agreement of whitened residuals against (I - H) z Monte Carlo; "
+            "independent of the scale of sigma",
+            "p_value": self.p_value,
+            "alpha": self.alpha,
+            "structure": self.structure,
+            "hints": list(self.hints),
+            "families": self.families,
+            "draws": self.draws,
+            "neighbours": self.neighbours,
+        }
+
+
+def features(st: Setup) -> dict:
+    """Feature matrices {family: (N, F)} of the stops of a set-up (families whose variable
+    does not vary are left out)."""
+    problem = st.problem
+    s = np.asarray(problem.s)
+    ctx = problem.ctx
+    scale = np.std(s) if np.std(s) > 0 else 1.0
+    ext = s / scale
+    out = {"extensions": ext}
+    d = np.asarray(ctx.direction)
+    if np.ptp(d) > 0:
+        # a reversal on one leg weighs like two standard deviations of extension
+        out["extensions, direction"] = np.concatenate([ext, d], axis=1)
+    session = np.asarray(ctx.session)
+    order = np.arange(len(s), dtype=float)
+    out["time"] = np.stack([order, 1e9 * session], axis=1)
+    temperature = np.asarray(ctx.temperature, float)
+    if np.ptp(temperature) >= 0.5:
+        out["temperature"] = temperature[:, None]
+    return out
+
+
+def neighbours(x: np.ndarray, k: int, rows: np.ndarray, chunk: int = 1024) -> np.ndarray:
+    """(R, k) indices (into `rows`) of the k nearest other rows of each of `rows` in feature
+    space x (N, F); distances in chunks of `chunk` rows (memory R·chunk)."""
+    xr = x[rows]
+    out = []
+    for start in range(0, len(rows), chunk):
+        a = xr[start : start + chunk]
+        d2 = np.sum((a[:, None, :] - xr[None, :, :]) ** 2, axis=-1)
+        d2[np.arange(len(a)), np.arange(start, start + len(a))] = np.inf
+        out.append(np.argpartition(d2, k - 1, axis=1)[:, :k])
+    return np.concatenate(out)
+
+
+def _agreement(e: np.ndarray, nn: np.ndarray):
+    """A for residuals e (..., R, C) and neighbour indices nn (R, k)."""
+    k = nn.shape[1]
+    num = np.einsum("...rc,...rkc->...", e, e[..., nn, :])
+    return num / (k * np.einsum("...rc,...rc->...", e, e))
+
+
+@dataclass(frozen=True)
+class Whitened:
+    """The residuals of a fit in the form both tests use: `e` (N, 6) whitened residuals,
+    each noise group rescaled to unit variance by VCE (0 where not fitted); `factor` (N, 6)
+    the rescaling (applied to Jacobian rows too); `U` (N·6, r) orthonormal basis of the fit's
+    column space (H = U Uᵀ); `L` (6, 6) Cholesky factor of the within-row correlation of
+    the residuals; `mask` (N, 6) fitted cells; `rows` fitted rows; `dof`: Σ redundancy."""
+
+    e: np.ndarray
+    factor: np.ndarray
+    U: np.ndarray
+    L: np.ndarray
+    mask: np.ndarray
+    rows: np.ndarray
+    dof: float
+
+    def null_draws(self, draws: int, seed: int, batch: int = 100):
+        """Batches (b, N, 6) of Monte Carlo null residuals (I − H) z, z with the rows'
+        correlation, masked like the data."""
+        rng = np.random.default_rng(seed)
+        n = len(self.mask)
+        for start in range(0, draws, batch):
+            b = min(batch, draws - start)
+            z = (rng.standard_normal((b, n, 6)) @ self.L.T * self.mask).reshape(b, -1)
+            yield (z - (z @ self.U) @ self.U.T).reshape(b, n, 6)
+
+
+def whitened(cal: Calibration, st: Setup, tol: float = 1e-6) -> Whitened:
+    """`Whitened` of fit `cal` of set-up `st`."""
+    mask = np.asarray(st.mask) & (np.asarray(cal.weight) > 0)
+    rows = np.flatnonzero(mask.any(axis=1))
+    J = np.asarray(cal.jacobian)
+    # relative scale of the noise groups from the fit itself (VCE), applied to the
+    # residuals and the Jacobian alike
+    groups = np.asarray(st.noise.groups) if st.noise is not None else np.where(mask, 0, -1)
+    red = redundancy(J, tol)
+    scale, _ = group_scales(cal.residual, red, groups, mask)
+    factor = np.where(mask, 1.0 / scale[np.maximum(groups, 0)], 0.0)
+    e = np.where(mask, np.asarray(cal.residual), 0.0) * factor
+    U = fit_basis(J * factor.reshape(-1, 1), tol)  # (N·6, r) orthonormal
+    # within-row correlation of the noise, from fully measured rows' residuals
+    full = mask[rows].all(axis=1)
+    C = np.eye(6)
+    if full.sum() >= 30:
+        C = np.corrcoef(e[rows][full], rowvar=False)
+    L = np.linalg.cholesky(C + 1e-9 * np.eye(6))
+    return Whitened(e, factor, U, L, mask, rows, float(red[mask.reshape(-1)].sum()))
+
+
+def structure_test(
+    cal: Calibration,
+    st: Setup,
+    *,
+    alpha: float = 0.01,
+    draws: int = 1000,
+    neighbours_k: int = 3,
+    seed: int = 0,
+    tol: float = 1e-6,
+) -> StructureTest:
+    """Test the residuals of fit `cal` (of set-up `st`) for structure, without trusting σ's
+    scale (see the module docstring). `alpha`: false-alarm rate; `draws`: Monte Carlo draws
+    of the null law (p-value resolution 1/(draws + 1)); `neighbours_k`: k; `seed`: of the
+    draws."""
+    w = whitened(cal, st, tol)
+    rows, e = w.rows, w.e
+    if len(rows) <= neighbours_k + 1:
+        raise ValueError(f"the structure test needs more than {neighbours_k + 1} fitted rows")
+
+    feats = features(st)
+    nns = {f: neighbours(x, neighbours_k, rows) for f, x in feats.items()}
+    observed = {f: float(_agreement(e[rows], nn)) for f, nn in nns.items()}
+    null = {f: [] for f in feats}
+    for z in w.null_draws(draws, seed):
+        for f, nn in nns.items():
+            null[f].append(_agreement(z[:, rows], nn))
+    null = {f: np.concatenate(v) for f, v in null.items()}
+    stats = {}
+    zmax_obs = -np.inf
+    zmax_null = np.full(draws, -np.inf)
+    for f in feats:
+        mean, std = float(null[f].mean()), float(null[f].std())
+        std = std if std > 0 else 1.0
+        zf = (observed[f] - mean) / std
+        zmax_obs = max(zmax_obs, zf)
+        zmax_null = np.maximum(zmax_null, (null[f] - mean) / std)
+        stats[f] = {
+            "agreement": observed[f],
+            "null_mean": mean,
+            "null_std": std,
+            "z": float(zf),
+            "p_value": float((1 + np.sum(null[f] >= observed[f])) / (draws + 1)),
+        }
+    p = float((1 + np.sum(zmax_null >= zmax_obs)) / (draws + 1))
+    hints = tuple(
+        sorted((f for f in stats if stats[f]["p_value"] < alpha), key=lambda f: -stats[f]["z"])
+    )
+    return StructureTest(p, alpha, stats, hints, draws, neighbours_k)

@@ -1,0 +1,29 @@
+"""The persistent compilation cache the command line turns on (issue: compile once, not every
+run): where it goes, how it is turned off."""
+
+import jax
+
+from jaxtable._cache import cache_directory, enable_compilation_cache
+from jaxtable.cli import build_parser
+
+
+def test_cache_directory_follows_the_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("JAXTABLE_CACHE_DIR", str(tmp_path / "c"))
+    assert cache_directory() == tmp_path / "c"
+    monkeypatch.setenv("JAXTABLE_CACHE_DIR", "off")
+    assert cache_directory() is None
+    assert enable_compilation_cache() is None
+    monkeypatch.delenv("JAXTABLE_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache_directory() == tmp_path / "xdg" / "jaxtable" / "jax"
+
+
+def test_enable_sets_the_jax_cache_and_the_cli_can_turn_it_off(tmp_path):
+    old = jax.config.jax_compilation_cache_dir
+    try:
+        path = enable_compilation_cache(tmp_path / "jc")
+        assert path.is_dir() and jax.config.jax_compilation_cache_dir == str(path)
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)
+    assert build_parser().parse_args(["--no-cache", "spiral"]).no_cache
+    assert not build_parser().parse_args(["spiral"]).no_cache
