@@ -155,10 +155,17 @@ def test_two_hidden_effects_are_both_selected(which):
 
 
 def _null_selections(seeds):
+    """Per noise-only data set: everything diagnose claims (library effects, dictionary
+    terms, "unexplained")."""
     out = []
     for seed in seeds:
         nominal, data, _ = case("null", seed)
-        out.append(diagnose(nominal, data, log=_quiet).selected)
+        diag = diagnose(nominal, data, log=_quiet)
+        out.append(
+            diag.selected
+            + [f.candidate.label for f in diag.discovered]
+            + (["unexplained"] if diag.unexplained else [])
+        )
     return out
 
 
@@ -169,8 +176,10 @@ def test_null_data_select_nothing():
 
 @pytest.mark.slow
 def test_null_data_select_nothing_40_seeds():
+    """Any claim on noise-only data in at most ~5 % of data sets (the dictionary's rate; the
+    structure test adds 1 %): the limit a correct 5 % method exceeds with probability 1 %."""
     sel = _null_selections(range(200, 240))
-    assert sum(not s for s in sel) >= 38, sel  # >= 95 %
+    assert sum(bool(s) for s in sel) <= binom.ppf(0.99, 40, 0.06), sel
 
 
 @pytest.mark.parametrize("seed", [0])
@@ -231,14 +240,15 @@ def test_effects_found_without_sigma_columns():
 @pytest.mark.slow
 def test_misstated_sigma_false_alarms_over_60_data_sets():
     """Noise-only data with σ stated 25 % too small, 25 % too large and not at all (20 seeds
-    each): any selection or `unexplained` counts as a false discovery; its rate must not
-    exceed 5 % (upper limit a correct method passes with probability 99 %)."""
+    each): any library effect, dictionary term or `unexplained` counts as a false
+    discovery; its rate must not exceed 5 % (upper limit a correct method passes with
+    probability 99 %)."""
     false = 0
     for k, factor in enumerate((0.75, 1.25, None)):
         for seed in range(300 + 20 * k, 320 + 20 * k):
             nominal, data, _ = case("null", seed)
             diag = diagnose(nominal, _misstated(data, factor), log=_quiet)
-            false += bool(diag.selected or diag.unexplained)
+            false += bool(diag.selected or diag.discovered or diag.unexplained)
     assert false <= binom.ppf(0.99, 60, 0.05), false
 
 
