@@ -19,7 +19,6 @@ jax.config.update("jax_enable_x64", True)
 
 from . import reports  # noqa: E402  (public report writers: jaxtable.reports)
 from ._analysis.commandmap import CommandMap, command_map  # noqa: E402
-from ._analysis.design import symmetric_table  # noqa: E402
 from ._analysis.errormap import ErrorMap, error_map  # noqa: E402
 from ._analysis.montecarlo import monte_carlo  # noqa: E402
 from ._analysis.sensitivities import paper_error_jacobian, pose_sensitivity  # noqa: E402
@@ -29,7 +28,14 @@ from ._analysis.tolerances import (  # noqa: E402
     load_tolerances,
     save_tolerances,
 )
-from ._analysis.workspaces import Grid, PoseList, Workspace, workspace_slice  # noqa: E402
+from ._analysis.workspaces import (  # noqa: E402
+    Grid,
+    PoseList,
+    Workspace,
+    WorkspaceFileError,
+    load_workspace,
+    workspace_slice,
+)
 from ._api import (  # noqa: E402
     ForwardResult,
     actuator_command,
@@ -80,6 +86,24 @@ from ._calibration.simulate import (  # noqa: E402
 )
 from ._calibration.validate import Validation, validate  # noqa: E402
 from ._context import Context  # noqa: E402
+from ._design.criteria import CRITERIA as DESIGN_CRITERIA  # noqa: E402
+from ._design.criteria import criteria as design_criteria  # noqa: E402
+from ._design.criteria import first_frequency, stiffness_matrix  # noqa: E402
+from ._design.evaluate import Assessment as DesignAssessment  # noqa: E402
+from ._design.evaluate import assess as assess_design  # noqa: E402
+from ._design.evaluate import assess_batch as assess_designs  # noqa: E402
+from ._design.evaluate import design_poses  # noqa: E402
+from ._design.hardware import Hardware, hardware_for  # noqa: E402
+from ._design.optimize import Constraint as DesignConstraint  # noqa: E402
+from ._design.optimize import (  # noqa: E402
+    DesignOptimum,
+    ParetoFront,
+    optimize_design,
+    pareto_front,
+    parse_constraint,
+)
+from ._design.symmetric import SymmetricDesign, symmetric_table  # noqa: E402
+from ._design.variables import Design  # noqa: E402
 from ._discovery.diagnose import Diagnosis, diagnose, heldout_rms  # noqa: E402
 from ._discovery.structure import StructureTest, structure_test  # noqa: E402
 from ._effects import (  # noqa: E402
@@ -112,6 +136,26 @@ from ._rotation import (  # noqa: E402
 from ._table import Table, check_table, replace  # noqa: E402
 
 __all__ = [
+    "DESIGN_CRITERIA",
+    "Design",
+    "DesignAssessment",
+    "DesignConstraint",
+    "DesignOptimum",
+    "Hardware",
+    "ParetoFront",
+    "SymmetricDesign",
+    "WorkspaceFileError",
+    "assess_design",
+    "assess_designs",
+    "design_criteria",
+    "design_poses",
+    "first_frequency",
+    "hardware_for",
+    "load_workspace",
+    "optimize_design",
+    "pareto_front",
+    "parse_constraint",
+    "stiffness_matrix",
     # core
     "AbstractEffect",
     "Backlash",

@@ -86,6 +86,28 @@ def cond_small(J: Float[ArrayLike, "n n"]) -> Float[ArrayLike, ""]:
     return jnp.sqrt(lmax / lmin)
 
 
+def cholesky_small(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "n n"]:
+    """Lower-triangular L with L Lᵀ = S for a symmetric positive definite S, unrolled over
+    the n columns (element-wise code, no LAPACK call)."""
+    n = S.shape[0]
+    rows = jnp.arange(n)
+    L = jnp.zeros_like(S)
+    for k in range(n):
+        d = jnp.sqrt(S[k, k] - L[k] @ L[k])
+        col = (S[:, k] - L @ L[k]) / d
+        L = L.at[:, k].set(jnp.where(rows > k, col, jnp.where(rows == k, d, 0.0)))
+    return L
+
+
+def smallest_generalized_eigval(
+    K: Float[ArrayLike, "n n"], M: Float[ArrayLike, "n n"]
+) -> Float[ArrayLike, ""]:
+    """Smallest λ of K x = λ M x (K, M symmetric positive definite): with M = L Lᵀ it is
+    1 / λ_max(Lᵀ K⁻¹ L)."""
+    L = cholesky_small(M)
+    return 1.0 / largest_eigval_small(L.T @ solve_small(K, L))
+
+
 class SmallLU(lx.AbstractLinearSolver):
     """A lineax linear solver for small square systems by `lu_small` / `lu_solve_small`.
 

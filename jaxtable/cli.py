@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from ._analysis.tolerances import ToleranceFileError
+from ._analysis.workspaces import WorkspaceFileError
 from ._cache import enable_compilation_cache
 from ._calibration.measurements import DataFileError
 from ._errors import KinematicsError, TableFileError
@@ -285,6 +286,126 @@ def _validate(args) -> int:
     return 0
 
 
+def _design_inputs(args):
+    """(design, workspace, text) from --table, --workspace, --leg-stiffness, --payload."""
+    from ._analysis.workspaces import Workspace, load_workspace
+    from ._design.evaluate import as_design
+    from ._design.hardware import hardware_for
+    from ._io import load_model, reference_table
+
+    if args.table is None:
+        table, effects = reference_table(), None
+    else:
+        table, effects = load_model(args.table)
+    options = {"effects": effects, "payload": args.payload}
+    if args.leg_stiffness is not None:
+        options["leg_stiffness"] = args.leg_stiffness
+    design = as_design(table, hardware_for(table, **options))
+    if args.workspace is None:
+        ws = Workspace()
+        return design, ws, ws.describe()
+    ws = load_workspace(args.workspace)
+    text = ws.describe() if isinstance(ws, Workspace) else f"{len(ws)} poses from {args.workspace}"
+    return design, ws, text
+
+
+def _design_evaluate(args) -> int:
+    from ._design.evaluate import assess
+    from ._reports.design import write_evaluation_report
+
+    design, ws, text = _design_inputs(args)
+    print(f"evaluating '{design.table().name}' over {text} ...", file=sys.stderr)
+    a = assess(design, workspace=ws, n_sweep=args.n_sweep, n_random=args.n_random)
+    out = Path(args.out)
+    json_path = Path(args.json) if args.json else out / "design.json"
+    from ._analysis.workspaces import Workspace
+
+    n_sweep = args.n_sweep if isinstance(ws, Workspace) else None
+    print(write_evaluation_report(a, out, text, n_sweep, json_path))
+    print(f"wrote {out / 'design.md'}, {json_path}", file=sys.stderr)
+    return 0
+
+
+def _parse_bounds(text: str) -> dict:
+    """'base_radius=500:900,base_half_angle=2:30' (file units) -> {name: (lo, hi)} raw."""
+    out = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        name, _, rng = item.partition("=")
+        lo, sep, hi = rng.partition(":")
+        try:
+            out[name.strip()] = (float(lo), float(hi))
+        except ValueError:
+            raise UsageError(f"--bounds: '{item}' is not NAME=LO:HI") from None
+        if not sep:
+            raise UsageError(f"--bounds: '{item}' is not NAME=LO:HI")
+    return out
+
+
+def _design_optimize(args) -> int:
+    import math
+
+    from ._design.optimize import optimize_design, pareto_front, parse_constraint
+    from ._design.symmetric import SymmetricDesign
+    from ._design.variables import ANGLES, Design
+    from ._reports.design import write_optimization_report
+
+    design, ws, text = _design_inputs(args)
+    vary = [v.strip() for v in args.vary.split(",") if v.strip()]
+    if not args.as_table:
+        try:
+            design = Design(SymmetricDesign.from_table(design.table()), design.hardware)
+        except TableFileError as e:
+            if any(
+                v in SymmetricDesign.__dataclass_fields__
+                and v not in design.table().__dataclass_fields__
+                for v in vary
+            ):
+                raise
+            print(f"note: {e}; varying table leaves", file=sys.stderr)
+    try:
+        constraints = [parse_constraint(c) for c in args.constraint]
+        bounds = {
+            n: tuple(math.radians(x) if n in ANGLES else x for x in b)
+            for n, b in _parse_bounds(args.bounds).items()
+        }
+        catalogue = (
+            [float(x) for x in args.lead_catalogue.split(",")] if args.lead_catalogue else None
+        )
+        options = dict(
+            workspace=ws,
+            bounds=bounds,
+            lead_catalogue=catalogue,
+            starts=args.starts,
+            seed=args.seed,
+            progress=True,
+        )
+        front = None
+        if args.pareto:
+            front = pareto_front(
+                design,
+                vary,
+                args.objective,
+                args.pareto,
+                constraints,
+                n_points=args.pareto_points,
+                **options,
+            )
+            r = front.ends[0]
+        else:
+            r = optimize_design(design, vary, args.objective, constraints, **options)
+    except ValueError as e:
+        if isinstance(e, TableFileError):
+            raise
+        raise UsageError(str(e)) from None
+    out = Path(args.out)
+    json_path = Path(args.json) if args.json else out / "design_optimize.json"
+    print(write_optimization_report(r, out, json_path, front))
+    print(
+        f"wrote {out / 'design_optimize.md'}, {out / 'design.toml'}, {json_path}", file=sys.stderr
+    )
+    return 0
+
+
 def _bench(args) -> int:
     # The benchmark and its numpy/scipy baselines live in the source checkout's benchmarks/
     # (the installed library carries one kinematics only).
@@ -493,6 +614,73 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=_validate)
 
     sp = sub.add_parser(
+        "design",
+        help="design trade studies: evaluate a table over a required workspace (coverage, "
+        "dexterity, accuracy, stiffness, actuator duty, first frequency) or optimise it",
+    )
+    dsub = sp.add_subparsers(dest="design_verb", required=True)
+
+    def design_common(dp, out_default):
+        common(dp, out_default)
+        dp.add_argument(
+            "--workspace",
+            type=Path,
+            default=None,
+            help="required workspace: TOML (single = [6], combined = [6], mm / deg) or a CSV "
+            "pose list (x..yaw); default: the reference table's",
+        )
+        dp.add_argument(
+            "--leg-stiffness",
+            type=float,
+            default=None,
+            help="axial leg stiffness, N/mm (default: the model's compliance effect, else 2e4)",
+        )
+        dp.add_argument("--payload", type=float, default=100.0, help="kg (default 100)")
+        dp.add_argument("--json", default=None, help="JSON result (default: in OUT)")
+
+    dp = dsub.add_parser("evaluate", help="every design criterion over the workspace")
+    design_common(dp, "out/design")
+    dp.add_argument("--n-sweep", type=int, default=11, help="points per single-DOF sweep (11)")
+    dp.add_argument("--n-random", type=int, default=256, help="random box poses (256)")
+    dp.set_defaults(func=_design_evaluate)
+
+    dp = dsub.add_parser(
+        "optimize",
+        help="optimise one criterion over design variables by gradient (several starts; "
+        "hand and a lead catalogue enumerated), with constraints and a Pareto front",
+    )
+    design_common(dp, "out/design_optimize")
+    dp.add_argument(
+        "--vary",
+        required=True,
+        help="comma-separated design variables: base_radius, platform_radius, "
+        "base_half_angle, platform_half_angle, home_height, base_axis_offset, "
+        "platform_axis_offset, platform_z (symmetric table), lead, hand, stroke, "
+        "leg_stiffness, tolerances.SOURCE, ... (angles in deg)",
+    )
+    dp.add_argument("--objective", required=True, help="criterion to optimise (its sense is known)")
+    dp.add_argument(
+        "--constraint",
+        action="append",
+        default=[],
+        help="NAME<=V or NAME>=V on a criterion (repeatable)",
+    )
+    dp.add_argument("--bounds", default="", help="NAME=LO:HI,... (file units; default ±50 %%)")
+    dp.add_argument(
+        "--lead-catalogue", default=None, help="leads to enumerate, e.g. 5,10,12.7,16,20"
+    )
+    dp.add_argument("--pareto", default=None, help="second criterion: the Pareto front with it")
+    dp.add_argument("--pareto-points", type=int, default=7, help="ε values on the front (7)")
+    dp.add_argument("--starts", type=int, default=4, help="gradient starts (4)")
+    dp.add_argument("--seed", type=int, default=0)
+    dp.add_argument(
+        "--as-table",
+        action="store_true",
+        help="vary the table's own leaves even when it is a symmetric hexapod",
+    )
+    dp.set_defaults(func=_design_optimize)
+
+    sp = sub.add_parser(
         "bench",
         help="benchmarks with numpy/scipy baselines in the same run: inverse and forward "
         "kinematics, sensitivities, calibration, emcee, single-pose latency, a 1e8-pose map",
@@ -509,7 +697,14 @@ def main(argv=None) -> int:
         enable_compilation_cache()
     try:
         return args.func(args)
-    except (TableFileError, KinematicsError, ToleranceFileError, DataFileError, UsageError) as e:
+    except (
+        TableFileError,
+        KinematicsError,
+        ToleranceFileError,
+        DataFileError,
+        WorkspaceFileError,
+        UsageError,
+    ) as e:
         print(f"jaxtable {args.verb}: error: {e}", file=sys.stderr)
         return 2
 

@@ -76,8 +76,9 @@ class Tolerances(eqx.Module):
         return SOURCES
 
     def sigma(self, source: str) -> float:
-        """σ of the source's parameter in model units."""
-        v = float(getattr(self, source))
+        """σ of the source's parameter in model units (traceable: a design study may vary
+        the tolerances)."""
+        v = getattr(self, source)
         if source == "lead_error":
             return v / 300.0
         if source == "clearance":

@@ -36,11 +36,11 @@ class Workspace(eqx.Module):
         s = np.linspace(-1, 1, n)
         return np.stack([np.outer(s, np.eye(6)[k] * ranges[k]) for k in range(6)])
 
-    def box_samples(self, n_random: int = 20000, seed: int = 0) -> np.ndarray:
-        """The combined box: its 3^6 grid of corners/edge midpoints and `n_random` uniform
-        samples, (729 + n_random, 6), mm/rad."""
+    def box_samples(self, n_random: int = 20000, seed: int = 0, levels: int = 3) -> np.ndarray:
+        """The combined box: its `levels`^6 grid (3: corners, edge and face midpoints, centre;
+        2: corners) and `n_random` uniform samples, (levels^6 + n_random, 6), mm/rad."""
         box = self.to_internal(self.combined)
-        grid = np.array(list(itertools.product([-1.0, 0.0, 1.0], repeat=6))) * box
+        grid = np.array(list(itertools.product(np.linspace(-1.0, 1.0, levels), repeat=6))) * box
         rnd = np.random.default_rng(seed).uniform(-1, 1, (n_random, 6)) * box
         return np.concatenate([grid, rnd])
 
@@ -120,3 +120,75 @@ def workspace_slice(dofs=("x", "y"), n=101, ranges=None, fixed=None) -> Grid:
     values = tuple(tuple(np.linspace(-h, h, k)) for h, k in zip(half, ns))
     fx = tuple(np.zeros(6) if fixed is None else Workspace.to_internal(fixed))
     return Grid(tuple(axes), values, fx)
+
+
+class WorkspaceFileError(ValueError):
+    """A workspace file is unreadable or has a bad value (the message names it)."""
+
+
+def load_workspace(path) -> "Workspace | PoseList":
+    """A required workspace from a file, mm / deg:
+
+    - TOML with `single = [6 half-ranges]` (each DOF alone) and/or `combined = [6 half-widths]`
+      (the box all DOF share), missing keys defaulting to the reference table's;
+    - CSV with a header naming the pose columns x, y, z, roll, pitch, yaw (or cmd_x, ...):
+      an explicit pose list.
+    """
+    from pathlib import Path
+
+    path = Path(path)
+    if path.suffix.lower() == ".csv":
+        import csv
+
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+        if not rows:
+            raise WorkspaceFileError(f"{path}: empty file")
+        header = [h.strip() for h in rows[0]]
+        cols = []
+        for c in POSE_COLUMNS:
+            for name in (c, f"cmd_{c}"):
+                if name in header:
+                    cols.append(header.index(name))
+                    break
+            else:
+                raise WorkspaceFileError(f"{path}: no column '{c}' (or 'cmd_{c}') in the header")
+        poses = []
+        for r, row in enumerate(rows[1:], start=2):
+            if not any(cell.strip() for cell in row):
+                continue
+            values = []
+            for c, k in zip(POSE_COLUMNS, cols):
+                try:
+                    values.append(float(row[k]))
+                except (ValueError, IndexError):
+                    cell = row[k] if k < len(row) else ""
+                    raise WorkspaceFileError(
+                        f"{path}: row {r}, column '{header[k]}': '{cell}' is not a number"
+                    ) from None
+                if not math.isfinite(values[-1]):
+                    raise WorkspaceFileError(f"{path}: row {r}, column '{header[k]}' is not finite")
+            poses.append(values)
+        if not poses:
+            raise WorkspaceFileError(f"{path}: no poses")
+        return PoseList(pose_from_file(np.array(poses)))
+    from .._io import read_toml
+
+    doc = read_toml(path, WorkspaceFileError, "workspace")
+    unknown = sorted(set(doc) - {"single", "combined"})
+    if unknown:
+        raise WorkspaceFileError(f"{path}: unknown key(s) {unknown}; use single, combined")
+    values = {}
+    for key in ("single", "combined"):
+        if key not in doc:
+            continue
+        v = doc[key]
+        if not isinstance(v, list) or len(v) != 6:
+            raise WorkspaceFileError(
+                f"{path}: '{key}' must be 6 numbers (x, y, z mm; roll, pitch, yaw deg); got {v!r}"
+            )
+        for c, x in zip(POSE_COLUMNS, v):
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not x >= 0:
+                raise WorkspaceFileError(f"{path}: '{key}' {c} must be a number >= 0; got {x!r}")
+        values[key] = tuple(float(x) for x in v)
+    return Workspace(**values)

@@ -1,0 +1,111 @@
+"""Evaluating designs over a required workspace: one design with every criterion and its
+per-pose maps (`assess`), or a stack of designs at once (`assess_batch`, vmap over designs)."""
+
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._analysis.workspaces import PoseList, Workspace
+from .._errors import TableFileError
+from .._table import Table
+from .criteria import criteria, pose_criteria, stiffness_matrix
+from .hardware import Hardware, hardware_for
+from .variables import Design, check_design
+
+
+def design_poses(
+    workspace: "Workspace | PoseList | np.ndarray | None" = None,
+    n_sweep: int = 11,
+    n_random: int = 256,
+    seed: int = 0,
+    box: int = 3,
+) -> np.ndarray:
+    """The poses a design is judged on (N, 6), mm / rad. For a `Workspace` (default: the
+    reference table's): each DOF alone at `n_sweep` points over its single-DOF range, a
+    `box`⁶ grid over the combined box (3: corners, edge and face centres; 2: corners), and
+    `n_random` uniform poses in it (11, 256, 3: 1051 poses). A `PoseList` or an (N, 6)
+    array is used as given."""
+    if workspace is None:
+        workspace = Workspace()
+    if isinstance(workspace, Workspace):
+        return np.concatenate(
+            [workspace.sweeps(n_sweep).reshape(-1, 6), workspace.box_samples(n_random, seed, box)]
+        )
+    if isinstance(workspace, PoseList):
+        return workspace.poses()
+    return np.asarray(workspace, dtype=float).reshape(-1, 6)
+
+
+def as_design(design: "Design | Table", hardware: Hardware | None = None) -> Design:
+    """A `Design` from a design or a bare table (its leaves then are the variables);
+    `hardware` default: `hardware_for(table)`."""
+    if isinstance(design, Design):
+        return design if hardware is None else eqx.tree_at(lambda d: d.hardware, design, hardware)
+    return Design(design, hardware_for(design) if hardware is None else hardware)
+
+
+_criteria = eqx.filter_jit(criteria)
+_per_pose = eqx.filter_jit(jax.vmap(pose_criteria, in_axes=(None, None, 0)))
+
+
+@dataclass
+class Assessment:
+    """Every criterion of one design (`values`, CRITERIA keys, floats in their units), the
+    stiffness at home (6, 6), and the per-pose quantities of `pose_criteria` ((N,) numpy each)
+    at the required `poses` (N, 6)."""
+
+    design: Design
+    poses: np.ndarray
+    values: dict
+    stiffness_home: np.ndarray
+    per_pose: dict = field(repr=False)
+
+
+def assess(
+    design: "Design | Table",
+    hardware: Hardware | None = None,
+    workspace=None,
+    *,
+    n_sweep: int = 11,
+    n_random: int = 256,
+    seed: int = 0,
+) -> Assessment:
+    """Evaluate one design over the required workspace (see `design_poses`). Refuses a design
+    outside physical limits (naming the variable) and a workspace it cannot reach at all."""
+    design = as_design(design, hardware)
+    check_design(design)
+    poses = design_poses(workspace, n_sweep, n_random, seed)
+    table = design.table()
+    values = {k: float(v) for k, v in _criteria(table, design.hardware, jnp.asarray(poses)).items()}
+    per_pose = {
+        k: np.asarray(v) for k, v in _per_pose(table, design.hardware, jnp.asarray(poses)).items()
+    }
+    if values["coverage"] == 0.0:
+        worst = float(np.max(-per_pose["margin"]))
+        raise TableFileError(
+            f"workspace: not one of its {len(poses)} required poses is within the limits of "
+            f"'{table.name}' (stroke {np.asarray(table.stroke).tolist()} mm, joint bend limit "
+            f"{np.rad2deg(float(table.joint_angle_limit)):g} deg); the nearest misses by "
+            f"{worst:.4g} mm"
+        )
+    K = np.asarray(stiffness_matrix(table, jnp.zeros(6), design.hardware.leg_stiffness))
+    return Assessment(design, poses, values, K, per_pose)
+
+
+@eqx.filter_jit
+def _batch(designs: Design, poses, smooth):
+    def one(d):
+        return criteria(d.table(), d.hardware, poses, smooth)
+
+    return jax.vmap(one)(designs)
+
+
+def assess_batch(designs: Design, poses, smooth: float | None = None) -> dict:
+    """Criteria of a stack of designs (leaves with a leading design axis, see
+    `variables.stack`) over the same poses (N, 6): {name: (D,) numpy}. One compiled program,
+    vmapped over designs and poses."""
+    out = _batch(designs, jnp.asarray(poses, dtype=jnp.float64), smooth)
+    return {k: np.asarray(v) for k, v in out.items()}

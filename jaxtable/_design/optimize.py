@@ -1,0 +1,415 @@
+"""Design optimisation: continuous variables by gradient (optimistix BFGS on the smoothed
+criteria, several starts), discrete ones by enumeration, constraints by a penalty that grows
+over rounds, and the Pareto front between two criteria by the ε-constraint method.
+
+Each continuous variable v lives in its bounds [lo, hi] through v = lo + (hi − lo)·σ(z), so
+the optimiser works on an unbounded z and never leaves the bounds. The loss is
+
+    ± f(v) / |f(v0)|  +  μ Σ_j max(0, (g_j(v) − V_j) / |V_j|)²       (μ = 10, 10³, 10⁵)
+
+with f the objective (sign: − for criteria where more is better) and g_j ≤ V_j (or ≥) the
+constraints, all smoothed (see `criteria`). Every start, discrete choice and ε is one row of
+one vmapped solve. The winner is chosen on the EXACT criteria over the full pose set: the best
+objective among the candidates that meet every constraint (else the least violation).
+"""
+
+import itertools
+import re
+import sys
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .criteria import CRITERIA, criteria
+from .evaluate import Assessment, assess, assess_batch, design_poses
+from .variables import (
+    DISCRETE,
+    Design,
+    check_design,
+    default_bounds,
+    get,
+    set_values,
+    stack,
+    to_file_units,
+)
+
+MU = (1e1, 1e3, 1e5)
+HANDS = np.array(list(itertools.product([1.0, -1.0], repeat=6)))
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """`name` `op` `limit`: op '<=' or '>='; limit in the criterion's unit."""
+
+    name: str
+    op: str
+    limit: float
+
+    def violation(self, value):
+        """Relative violation (> 0 when broken)."""
+        scale = abs(self.limit) if self.limit != 0 else 1.0
+        d = value - self.limit if self.op == "<=" else self.limit - value
+        return d / scale
+
+    def __str__(self):
+        return f"{self.name}{self.op}{self.limit:g}"
+
+
+def parse_constraint(text: str) -> Constraint:
+    """'max_leg_force_N<=2000' or 'coverage>=1' -> Constraint (name checked)."""
+    m = re.fullmatch(r"\s*([A-Za-z_]\w*)\s*(<=|>=)\s*([-+0-9.eE]+)\s*", text)
+    if not m:
+        raise ValueError(f"constraint '{text}': write NAME<=VALUE or NAME>=VALUE")
+    name, op, value = m.groups()
+    check_criterion(name, "constraint")
+    try:
+        return Constraint(name, op, float(value))
+    except ValueError:
+        raise ValueError(f"constraint '{text}': '{value}' is not a number") from None
+
+
+def check_criterion(name: str, what: str = "objective") -> None:
+    if name not in CRITERIA:
+        raise ValueError(f"{what} '{name}' is not a criterion; use one of {', '.join(CRITERIA)}")
+
+
+@dataclass
+class DesignOptimum:
+    """Result of `optimize_design`. `variables`: {name: (start, optimum)} in file units (deg
+    for angles); `constraints`: [{name, op, limit, value, met}] at the optimum (exact);
+    `candidates`: exact objective of every start/discrete choice (NaN-free), `feasible`: the
+    optimum meets every constraint."""
+
+    objective: str
+    start: Assessment
+    optimum: Assessment
+    variables: dict
+    constraints: list
+    candidates: np.ndarray
+    feasible: bool
+
+    @property
+    def start_value(self) -> float:
+        return self.start.values[self.objective]
+
+    @property
+    def value(self) -> float:
+        return self.optimum.values[self.objective]
+
+    @property
+    def design(self) -> Design:
+        return self.optimum.design
+
+    def as_json(self) -> dict:
+        return {
+            "objective": self.objective,
+            "sense": CRITERIA[self.objective].sense,
+            "start_value": self.start_value,
+            "value": self.value,
+            "design": {k: _jsonable(v[1]) for k, v in self.variables.items()},
+            "start_design": {k: _jsonable(v[0]) for k, v in self.variables.items()},
+            "constraints": self.constraints,
+            "feasible": self.feasible,
+            "start_criteria": self.start.values,
+            "criteria": self.optimum.values,
+        }
+
+
+def _jsonable(v):
+    return v.tolist() if isinstance(v, np.ndarray) else v
+
+
+def _say(progress, text):
+    if progress:
+        print(text, file=sys.stderr, flush=True)
+
+
+def _bounds(design, names, bounds):
+    bounds = dict(bounds or {})
+    out = {}
+    for n in names:
+        v0 = np.asarray(get(design, n))
+        lo, hi = default_bounds(n, v0)
+        if n in bounds:
+            lo = np.broadcast_to(np.asarray(bounds[n][0], dtype=float), v0.shape)
+            hi = np.broadcast_to(np.asarray(bounds[n][1], dtype=float), v0.shape)
+        if np.any(lo >= hi):
+            raise ValueError(f"bounds of '{n}': lower {lo.tolist()} not below upper {hi.tolist()}")
+        if np.any((v0 < lo) | (v0 > hi)):
+            raise ValueError(f"start value of '{n}' ({v0.tolist()}) is outside its bounds")
+        out[n] = (lo, hi)
+    return out
+
+
+def _candidates(design, vary, lead_catalogue):
+    """The discrete choices: designs (list) and a label for each."""
+    choices = [[({}, "")]]
+    if "hand" in vary:
+        choices.append(
+            [({"hand": h}, "hand " + "".join("R" if x > 0 else "L" for x in h)) for h in HANDS]
+        )
+    if "lead" in vary and lead_catalogue is not None:
+        choices.append([({"lead": float(v)}, f"lead {v:g}") for v in lead_catalogue])
+    designs, labels = [], []
+    for combo in itertools.product(*choices):
+        vals, lab = {}, []
+        for v, label in combo:
+            vals.update(v)
+            lab.append(label)
+        designs.append(set_values(design, vals) if vals else design)
+        labels.append(", ".join(x for x in lab if x))
+    return designs, labels
+
+
+def _solve_batch(loss, z0, args, progress=False):
+    """Minimise `loss(z, (mu, *args))` for every row of z0 / args (vmapped), over the rounds
+    of the penalty weight MU, warm-started; one compiled program runs every round."""
+    solver = optx.BFGS(rtol=1e-6, atol=1e-8)
+
+    @jax.jit
+    def round_(z, mu, a):
+        def one(z, a):
+            sol = optx.minimise(loss, solver, z, args=(mu, *a), max_steps=200, throw=False)
+            return sol.value
+
+        return jax.vmap(one)(z, a)
+
+    z = z0
+    for k, mu in enumerate(MU):
+        z = round_(z, mu, args)
+        _say(progress, f"  penalty round {k + 1}/{len(MU)} done")
+    return z
+
+
+def optimize_design(
+    design: Design,
+    vary: list[str],
+    objective: str,
+    constraints: list[Constraint] = (),
+    *,
+    workspace=None,
+    bounds: dict | None = None,
+    lead_catalogue=None,
+    starts: int = 4,
+    seed: int = 0,
+    smooth: float = 32.0,
+    n_sweep: int = 7,
+    n_random: int = 64,
+    progress: bool = False,
+    epsilon: tuple | None = None,
+) -> DesignOptimum:
+    """Optimise `objective` (a CRITERIA key; its sense says min or max) over the variables
+    `vary` of `design`, subject to `constraints`.
+
+    Continuous variables follow the gradient of the smoothed criteria over a reduced pose set
+    (`n_sweep` per DOF, `n_random` box poses), from the start and `starts − 1` random points
+    in `bounds` ({name: (lo, hi)} internal units; default `default_bounds`). `hand` is
+    enumerated over its 2⁶ choices and `lead` over `lead_catalogue` when one is given (one
+    lead for all legs). Candidates are compared on the exact criteria over the full pose set
+    (`assess` defaults). `epsilon` = (criterion, op, values) adds one ε-constraint per value
+    (the Pareto front: see `pareto_front`)."""
+    check_criterion(objective)
+    vary = list(dict.fromkeys(vary))
+    if not vary:
+        raise ValueError("nothing to vary: name at least one design variable")
+    check_design(design)
+    for n in vary:
+        get(design, n)  # names checked here
+    discrete = [n for n in vary if n == "hand" or (n == "lead" and lead_catalogue is not None)]
+    cont = [n for n in vary if n not in discrete]
+    if lead_catalogue is not None and "lead" not in vary:
+        raise ValueError("a lead catalogue was given but 'lead' is not varied")
+    assert set(discrete) <= set(DISCRETE)
+
+    start = assess(design, workspace=workspace)
+    full_poses = start.poses
+    opt_poses = jnp.asarray(design_poses(workspace, n_sweep, n_random, seed, box=2))
+    sign = -1.0 if CRITERIA[objective].sense == "max" else 1.0
+    f_scale = abs(start.values[objective]) or 1.0
+    cons = list(constraints)
+
+    designs, labels = _candidates(design, vary, lead_catalogue)
+    eps_values = [None] if epsilon is None else list(epsilon[2])
+    if cont:
+        bnd = _bounds(design, cont, bounds)
+        shapes = [np.shape(bnd[n][0]) for n in cont]
+        sizes = [int(np.prod(s)) for s in shapes]
+        lo = jnp.asarray(np.concatenate([np.ravel(bnd[n][0]) for n in cont]))
+        hi = jnp.asarray(np.concatenate([np.ravel(bnd[n][1]) for n in cont]))
+
+        def values(z):
+            v = lo + (hi - lo) * jax.nn.sigmoid(z)
+            parts = jnp.split(v, np.cumsum(sizes)[:-1])
+            return {n: p.reshape(s) for n, p, s in zip(cont, parts, shapes)}
+
+        def loss(z, args):
+            mu, d, eps = args
+            d = set_values(d, values(z))
+            c = criteria(d.table(), d.hardware, opt_poses, smooth)
+            pen = sum(jnp.maximum(0.0, k.violation(c[k.name])) ** 2 for k in cons)
+            if epsilon is not None:
+                pen = pen + jnp.maximum(0.0, _eps_violation(epsilon, c[epsilon[0]], eps)) ** 2
+            return sign * c[objective] / f_scale + mu * pen
+
+        v0 = np.concatenate([np.ravel(np.asarray(get(design, n))) for n in cont])
+        u0 = (v0 - np.asarray(lo)) / (np.asarray(hi) - np.asarray(lo))
+        rng = np.random.default_rng(seed)
+        us = np.concatenate([u0[None], rng.uniform(0.02, 0.98, (starts - 1, len(v0)))])
+        us = np.clip(us, 1e-6, 1 - 1e-6)
+        z_starts = np.log(us) - np.log1p(-us)
+        rows = list(itertools.product(range(len(designs)), range(len(eps_values)), range(starts)))
+        Z0 = jnp.asarray(np.stack([z_starts[s] for _, _, s in rows]))
+        D = stack([designs[i] for i, _, _ in rows])
+        E = jnp.asarray([0.0 if eps_values[e] is None else eps_values[e] for _, e, _ in rows])
+        _say(
+            progress,
+            f"optimising {objective} over {', '.join(cont)}: {len(rows)} solves "
+            f"({starts} starts x {len(designs)} discrete choices x {len(eps_values)} ε) on "
+            f"{len(opt_poses)} poses (compiling first) ...",
+        )
+        Z = np.asarray(_solve_batch(loss, Z0, (D, E), progress))
+        finals = [set_values(designs[i], values(jnp.asarray(z))) for (i, _, _), z in zip(rows, Z)]
+    else:
+        rows = [(i, 0, 0) for i in range(len(designs))]
+        finals = designs
+        _say(progress, f"enumerating {len(finals)} discrete designs ({', '.join(discrete)}) ...")
+
+    exact = assess_batch(stack(finals), full_poses)
+    # constraints and ε on the exact criteria
+    viol = np.zeros(len(finals))
+    for k in cons:
+        viol += np.maximum(0.0, k.violation(exact[k.name]))
+    results = []
+    for e in range(len(eps_values)):
+        idx = [r for r, row in enumerate(rows) if row[1] == e]
+        v = viol[idx].copy()
+        if epsilon is not None:
+            v += np.maximum(0.0, _eps_violation(epsilon, exact[epsilon[0]][idx], eps_values[e]))
+        obj = sign * exact[objective][idx]
+        ok = v <= 1e-6
+        pick = (
+            idx[int(np.argmin(np.where(ok, obj, np.inf)))] if ok.any() else idx[int(np.argmin(v))]
+        )
+        results.append((pick, bool(ok.any())))
+    if epsilon is not None:
+        return [(finals[p], {k: float(exact[k][p]) for k in exact}, feas) for p, feas in results]
+
+    pick, feasible = results[0]
+    best = assess(finals[pick], workspace=workspace)
+    variables = {
+        n: (to_file_units(n, get(design, n)), to_file_units(n, get(best.design, n))) for n in vary
+    }
+    report = [
+        {
+            "name": k.name,
+            "op": k.op,
+            "limit": k.limit,
+            "value": best.values[k.name],
+            "met": bool(k.violation(best.values[k.name]) <= 1e-6),
+        }
+        for k in cons
+    ]
+    _say(progress, f"{objective}: {start.values[objective]:.6g} -> {best.values[objective]:.6g}")
+    return DesignOptimum(
+        objective,
+        start,
+        best,
+        variables,
+        report,
+        exact[objective],
+        feasible and all(r["met"] for r in report),
+    )
+
+
+def _eps_violation(epsilon, value, eps):
+    """Relative violation of the ε-constraint `value op eps` (> 0 when broken)."""
+    _, op, _ = epsilon
+    d = value - eps if op == "<=" else eps - value
+    return d / (abs(eps) + 1e-12)
+
+
+@dataclass
+class ParetoFront:
+    """The trade-off between `objective` and `second`: `points` (list of dicts: the ε bound,
+    both criteria, every varied variable in file units, feasible), non-dominated first."""
+
+    objective: str
+    second: str
+    points: list
+    ends: tuple  # (DesignOptimum for objective, DesignOptimum for second)
+
+    def to_csv(self, path) -> None:
+        keys = list(self.points[0]) if self.points else []
+        lines = [",".join(keys)]
+        for p in self.points:
+            lines.append(",".join(_csv_cell(p[k]) for k in keys))
+        from pathlib import Path
+
+        Path(path).write_text("\n".join(lines) + "\n")
+
+
+def _csv_cell(v):
+    if isinstance(v, (list, np.ndarray)):
+        return '"' + " ".join(f"{x:.10g}" for x in np.ravel(v)) + '"'
+    if isinstance(v, bool):
+        return str(v).lower()
+    return f"{v:.10g}" if isinstance(v, float) else str(v)
+
+
+def pareto_front(
+    design: Design,
+    vary: list[str],
+    objective: str,
+    second: str,
+    constraints: list[Constraint] = (),
+    *,
+    n_points: int = 7,
+    progress: bool = False,
+    **options,
+) -> ParetoFront:
+    """The Pareto front between two criteria by the ε-constraint method: optimise `objective`
+    alone and `second` alone (the ends), then `objective` with `second` bounded by each of
+    `n_points` values ε spread between the ends (all ε in one vmapped solve). Points that
+    another point beats on both criteria are dropped. `options`: as `optimize_design`."""
+    check_criterion(objective)
+    check_criterion(second, "second objective")
+    if second == objective:
+        raise ValueError("the two objectives of a Pareto front must differ")
+    a = optimize_design(design, vary, objective, constraints, progress=progress, **options)
+    b = optimize_design(design, vary, second, constraints, progress=progress, **options)
+    op = "<=" if CRITERIA[second].sense == "min" else ">="
+    eps = np.linspace(a.optimum.values[second], b.value, n_points)
+    _say(progress, f"Pareto front {objective} vs {second}: {n_points} ε values ...")
+    rows = optimize_design(
+        design,
+        vary,
+        objective,
+        constraints,
+        epsilon=(second, op, eps),
+        progress=progress,
+        **options,
+    )
+    s1 = -1.0 if CRITERIA[objective].sense == "max" else 1.0
+    s2 = -1.0 if CRITERIA[second].sense == "max" else 1.0
+    pts = []
+    for e, (d, vals, feasible) in zip(eps, rows):
+        if not feasible:
+            continue
+        p = {"epsilon": float(e), objective: vals[objective], second: vals[second]}
+        p.update({n: _jsonable(to_file_units(n, get(d, n))) for n in vary})
+        pts.append(p)
+    front = [
+        p
+        for p in pts
+        if not any(
+            s1 * q[objective] <= s1 * p[objective]
+            and s2 * q[second] <= s2 * p[second]
+            and (s1 * q[objective] < s1 * p[objective] or s2 * q[second] < s2 * p[second])
+            for q in pts
+        )
+    ]
+    front.sort(key=lambda p: s2 * p[second])
+    return ParetoFront(objective, second, front, (a, b))
