@@ -56,3 +56,49 @@ def scipy_forward(table: Table, commands: np.ndarray) -> np.ndarray:
             lambda q, c=cmd: numpy_command(table, q[None])[0] - c, np.zeros(6), xtol=1e-12
         )
     return out
+
+
+def numpy_design_criteria(
+    table: Table, leg_stiffness: float, mass: float, accel: float, ell: float, poses: np.ndarray
+) -> dict:
+    """Baseline for the design criteria of one design over (N, 6) poses, vectorised numpy
+    (np.linalg.svd / inv / solve / eigvalsh over the poses): worst and mean LCI, worst force
+    stiffness, worst leg force (platform CoG at the origin), first frequency at home with the
+    moving mass `mass` and the disc inertia of `hardware_for`. A subset of jaxtable's
+    criteria (no tolerance budget, no spiral error): the baseline does less work."""
+    a = np.asarray(table.platform_joints)
+    b = np.asarray(table.base_joints)
+
+    def legs(q):
+        R = numpy_rotation(q[:, 3:])
+        t = q[:, :3] + np.array([0.0, 0.0, float(table.home_height)])
+        ra = np.einsum("nij,kj->nki", R, a)
+        l = t[:, None, :] + ra - b
+        u = l / np.linalg.norm(l, axis=-1, keepdims=True)
+        return np.concatenate([u, np.cross(ra, u)], axis=-1)  # (N, 6, 6) rows [u, Ra×u]
+
+    J = legs(poses)
+    sv = np.linalg.svd(J * np.r_[np.ones(3), np.full(3, 1 / ell)], compute_uv=False)
+    lci = sv[:, -1] / sv[:, 0]
+    K = leg_stiffness * np.einsum("nki,nkj->nij", J, J)
+    C = np.linalg.inv(K)
+    k_t = 1.0 / np.linalg.eigvalsh(C[:, :3, :3])[:, -1]
+    JT = np.transpose(J, (0, 2, 1))
+    W = np.array([0.0, 0.0, -9.80665 * mass, 0.0, 0.0, 0.0])
+    f0 = np.linalg.solve(JT, np.broadcast_to(W, (len(poses), 6))[..., None])[..., 0]
+    G = np.concatenate([np.eye(3), np.zeros((3, 3))]) * (-mass * accel)
+    B = np.linalg.solve(JT, np.broadcast_to(G, (len(poses), 6, 3)))
+    force = np.abs(f0) + np.linalg.norm(B, axis=-1)
+    r = float(np.mean(np.linalg.norm(a[:, :2], axis=-1)))
+    M = np.diag([mass, mass, mass, mass * r**2 / 4, mass * r**2 / 4, mass * r**2 / 2])
+    K0 = leg_stiffness * legs(np.zeros((1, 6)))[0].T @ legs(np.zeros((1, 6)))[0]
+    from scipy.linalg import eigh
+
+    lam = eigh(K0, M, eigvals_only=True)[0]
+    return {
+        "min_lci": float(lci.min()),
+        "gci": float(lci.mean()),
+        "min_stiffness_translation_N_per_mm": float(k_t.min()),
+        "max_leg_force_N": float(force.max()),
+        "first_frequency_Hz": float(np.sqrt(1e3 * lam) / (2 * np.pi)),
+    }

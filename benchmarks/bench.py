@@ -51,7 +51,7 @@ from jaxtable._context import Context
 from jaxtable._effects import resolve_effects
 from jaxtable._model import inverse_extension
 
-from .baselines import numpy_command, scipy_forward
+from .baselines import numpy_command, numpy_design_criteria, scipy_forward
 
 CYCLE_US = 1000.0  # the real-time budget assumed: a 1 kHz servo cycle
 BOX = np.array([100.0, 100.0, 50.0, np.deg2rad(7.5), np.deg2rad(7.5), np.deg2rad(10.0)])
@@ -334,6 +334,15 @@ def run_benchmark(table: Table, quick: bool = False, log=print) -> dict:
         f"budget {CYCLE_US:.0f} µs"
     )
 
+    # -- design criteria batched over designs
+    r["designs"] = _bench_designs(table, quick)
+    de = r["designs"]
+    log(
+        f"design criteria, {de['designs']} designs x {de['poses']} poses: {de['seconds']:.1f} s "
+        f"({de['design_poses_per_s']:.3g} design-poses/s); numpy loop (subset of the criteria) "
+        f"{de['numpy_design_poses_per_s']:.3g} design-poses/s"
+    )
+
     # -- big streamed map in a child process (peak memory)
     r["map"] = _map_peak(10 if quick else 100)
     m = r["map"]
@@ -380,6 +389,83 @@ def _bench_calibration(table: Table, quick: bool) -> dict:
 
 
 # ---------------------------------------------------------------- reporting
+
+
+def _random_designs(table: Table, n: int, seed: int = 0):
+    """`n` symmetric designs around the table's (radii, home height ±20 %, pair half angles
+    4-20°), stacked for vmap."""
+    from jaxtable import Design, SymmetricDesign, hardware_for
+    from jaxtable._design.variables import set_values, stack
+
+    d0 = Design(SymmetricDesign.from_table(table), hardware_for(table))
+    g = d0.geometry
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        f = rng.uniform(0.8, 1.2, 3)
+        ang = np.deg2rad(rng.uniform(4.0, 20.0, 2))
+        out.append(
+            set_values(
+                d0,
+                {
+                    "base_radius": float(g.base_radius) * f[0],
+                    "platform_radius": float(g.platform_radius) * f[1],
+                    "home_height": float(g.home_height) * f[2],
+                    "base_half_angle": ang[0],
+                    "platform_half_angle": ang[1],
+                },
+            )
+        )
+    return d0, out, stack
+
+
+def _bench_designs(table: Table, quick: bool) -> dict:
+    """Every design criterion for a population of designs over ~10³ workspace poses, vmapped
+    over designs and poses in chunks of 100 designs, against a numpy loop over designs."""
+    from jaxtable import Workspace, assess_designs, design_poses
+
+    n_designs = 200 if quick else 10**4
+    poses = design_poses(Workspace(), n_sweep=7, n_random=894, box=2)  # 42 + 64 + 894 = 1000
+    d0, designs, stack = _random_designs(table, n_designs)
+    chunk = 100
+    t0 = time.perf_counter()
+    first = assess_designs(stack(designs[:chunk]), poses)
+    t_first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    results = [first] + [
+        assess_designs(stack(designs[i : i + chunk]), poses) for i in range(chunk, n_designs, chunk)
+    ]
+    t_rest = time.perf_counter() - t0
+    per_chunk = t_rest / max(len(results) - 1, 1)
+    seconds = t_first - per_chunk + per_chunk * len(results)  # compile counted once
+    n_np = 10 if quick else 50
+    t0 = time.perf_counter()
+    base = [
+        numpy_design_criteria(
+            d.table(),
+            float(d.hardware.leg_stiffness[0]),
+            float(d.hardware.moving_mass(d.table())),
+            float(d.hardware.acceleration),
+            float(d.hardware.characteristic_length),
+            poses,
+        )
+        for d in designs[:n_np]
+    ]
+    t_np = time.perf_counter() - t0
+    diff = max(
+        abs(base[i][k] - results[0][k][i]) / abs(base[i][k]) for i in range(n_np) for k in base[0]
+    )
+    return {
+        "designs": n_designs,
+        "poses": len(poses),
+        "seconds": seconds,
+        "compile_s": max(t_first - per_chunk, 0.0),
+        "design_poses_per_s": n_designs * len(poses) / seconds,
+        "numpy_designs": n_np,
+        "numpy_design_poses_per_s": n_np * len(poses) / t_np,
+        "numpy_max_rel_diff": diff,
+        "criteria": len(first),
+    }
 
 
 def markdown(r: dict) -> str:
@@ -439,6 +525,7 @@ def markdown(r: dict) -> str:
     ca = r["calibration"]
     la = r["latency"]
     m = r["map"]
+    de = r["designs"]
     L += [
         "",
         f"scipy baseline: `scipy.optimize.fsolve` pose by pose on the numpy model, "
@@ -462,6 +549,14 @@ def markdown(r: dict) -> str:
         f"{la['dispatch_floor_median_us']:.1f} µs, p99 {la['dispatch_floor_p99_us']:.1f} µs; "
         f"numpy one pose: median {la['numpy_median_us']:.1f} µs, p99 "
         f"{la['numpy_p99_us']:.1f} µs |",
+        f"| every design criterion ({de['criteria']}: coverage, LCI, budget σ, spiral error, "
+        f"stiffness, leg force, motor torque and speed, first frequency, tolerance cost) for "
+        f"{de['designs']:.0e} designs × {de['poses']} poses, vmapped over both in chunks of 100 "
+        f"designs | {de['seconds']:.0f} s = {de['design_poses_per_s']:.3g} design-poses/s "
+        f"(compile {de['compile_s']:.0f} s); numpy loop over {de['numpy_designs']} designs "
+        f"computing 5 of the criteria (LCI, GCI, stiffness, leg force, frequency; no budget): "
+        f"{de['numpy_design_poses_per_s']:.3g} design-poses/s; largest relative difference "
+        f"{de['numpy_max_rel_diff']:.1e} |",
         f"| streamed command map, {m['poses']:.0e} poses (x, y, z, yaw grid) | "
         f"{m['seconds']:.1f} s = {m['poses'] / m['seconds']:.3g} poses/s, peak resident "
         f"memory {m['peak_rss_mib']:.0f} MiB |",

@@ -22,6 +22,7 @@ from .._errors import require_x64
 from .._forward import platform_radius
 from .._kinematics import spiral_extension, within_limits
 from .._linalg import cond_small, inv_small
+from .._model import inverse_extension
 from .._rotation import ARCSEC_PER_RAD, euler_rate_matrix
 from .._table import Table
 from .sensitivities import per_leg_jacobians_one
@@ -35,7 +36,11 @@ TARGET_MM = 0.2  # the paper's design target: translation error within ±0.2 mm
 def budget_one(table: Table, sigmas: tuple, pose):
     """Linear budget at one commanded pose; see the module docstring. `sigmas`: σ per source
     in model units, ordered as `SOURCES`."""
-    Jq, per_leg = per_leg_jacobians_one(table, budget_effects(table), pose, BUDGET_WRT)
+    effects = budget_effects(table)
+    # the lead-scale error is zero at the nominal: it adds nothing to the command, so the
+    # command is explicit (no Newton iteration for an s-dependent effect)
+    s, _ = inverse_extension(table, {"spiral": effects["spiral"]}, pose)
+    Jq, per_leg = per_leg_jacobians_one(table, effects, pose, BUDGET_WRT, s)
     # δq = −Jq⁻¹ D δθ with D block-diagonal by leg: column (i, c) of δq/δθ is
     # −Jq⁻¹[:, i] · d_ic, so σ_q² = σ² Σ_i (Jq⁻¹[:, i])² Σ_c d_ic².
     Jinv = inv_small(Jq)  # plain jnp: see _linalg on LAPACK deadlocks

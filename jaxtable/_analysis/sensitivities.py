@@ -76,14 +76,15 @@ def jacobians_one(table, effects, pose, wrt):
     return Jq, Jt
 
 
-def per_leg_jacobians_one(table, effects, pose, wrt):
+def per_leg_jacobians_one(table, effects, pose, wrt, s=None):
     """(∂r/∂q (6, 6), [∂r_i/∂θ_i (6, m) per name]) for per-leg parameters (leaves of shape
     (6,) or (6, m)), at one commanded pose.
 
     Leg i's residual depends only on leg i's parameters, so one forward-mode tangent per
     column of a leaf (perturbing that column on every leg at once) gives all of them: m
     tangents per leaf instead of 6·m. Row i of the result is ∂r_i/∂θ_i. Same maths as
-    `jacobians_one`, fewer tangents; the tests check they agree."""
+    `jacobians_one`, fewer tangents; the tests check they agree. `s`: the nominal extensions
+    when the caller has them (default: the inverse solve)."""
     model = (table, {} if effects is None else dict(effects))
     leaves = [jnp.asarray(_get(model, n), dtype=jnp.float64) for n in wrt]
     widths = [1 if x.ndim == 1 else x.shape[1] for x in leaves]
@@ -100,7 +101,8 @@ def per_leg_jacobians_one(table, effects, pose, wrt):
         t, eff = perturbed(c)
         return length_residual(t, resolve_effects(t, effects if effects is None else eff), q, s)
 
-    s, _ = inverse_extension(table, resolve_effects(table, effects), pose)
+    if s is None:
+        s, _ = inverse_extension(table, resolve_effects(table, effects), pose)
     c0 = jnp.zeros(int(offsets[-1]))
     Jq = jax.jacfwd(residual, argnums=1)(c0, pose, s)
     Jc = jax.jacfwd(residual, argnums=0)(c0, pose, s)

@@ -75,7 +75,7 @@ class Tolerances(eqx.Module):
         """The error sources, in the order every budget reports them."""
         return SOURCES
 
-    def sigma(self, source: str) -> float:
+    def sigma(self, source: str):
         """σ of the source's parameter in model units (traceable: a design study may vary
         the tolerances)."""
         v = getattr(self, source)

@@ -21,16 +21,21 @@ J the 6×6 matrix of rows [u_i, m_i] (∂L/∂(translation, rotation vector)):
 - `max_motor_torque_Nm`: worst F_i·lead_i / (2π η).
 - `max_motor_rpm`: worst 60·l̇_i / lead_i with l̇_i = v + ω‖m_i‖ (speed v, angular speed ω,
   both in their worst directions).
+- `tolerance_cost` (–): Σ_s t_s^paper / t_s over the budget's sources: the cost of the
+  tolerances if each source costs 1 at the paper's tolerance and cost ∝ 1/tolerance (6 for
+  the paper's budget).
 - `first_frequency_Hz`: at home, √λ_min(K, M) / (2π), M the spatial inertia of platform +
   payload about the platform origin.
 
 Worst cases are reported exactly (max, min); for gradients `smooth=p` replaces them by the
-power mean (mean xᵖ)^(1/p) (min: p → −p), scaled by the exact extreme so it never overflows,
-and coverage by the mean of sigmoid(margin/τ) with τ = `coverage_width` mm; both converge to
-the exact values as p → ∞, τ → 0. Worst cases run over every required pose, reachable or not:
-a design must serve the whole required workspace, and `coverage` says how much of it it
-reaches. Angular acceleration and the leg's own inertia are not in the force duty; leg-leg
-clearance is not modelled.
+p-norm (Σ xᵖ)^(1/p) (min: p → −p), scaled by the exact extreme so it never overflows. It is
+on the safe side (a worst case never looks better than it is, so a design that meets a
+smoothed constraint meets the exact one) and within a factor n^(1/p) of the exact value over
+n poses. Coverage becomes the mean of sigmoid(margin/τ), τ = `coverage_width` mm. Both
+converge to the exact values as p → ∞, τ → 0. Worst cases run over every required pose,
+reachable or not: a design must serve the whole required workspace, and `coverage` says how
+much of it it reaches. Angular acceleration and the leg's own inertia are not in the force
+duty; leg-leg clearance is not modelled.
 """
 
 from dataclasses import dataclass
@@ -40,7 +45,7 @@ import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
 from .._analysis.errormap import budget_one
-from .._analysis.tolerances import SOURCES
+from .._analysis.tolerances import SOURCES, Tolerances
 from .._effects import leg_forces
 from .._kinematics import joint_bend, leg_lengths, leg_lines
 from .._linalg import (
@@ -77,6 +82,7 @@ CRITERIA = {
     "max_motor_torque_Nm": Criterion("min", "N·m", "worst motor torque"),
     "max_motor_rpm": Criterion("min", "rpm", "worst motor speed"),
     "first_frequency_Hz": Criterion("max", "Hz", "first natural frequency at home"),
+    "tolerance_cost": Criterion("min", "", "tolerance cost, 1 per source at the paper's budget"),
 }
 """Every criterion by its JSON key: sense (`max` = larger is better), unit, meaning."""
 
@@ -94,7 +100,7 @@ def leg_matrix(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "6
 
 
 def stiffness_matrix(
-    table: Table, pose: Float[ArrayLike, "6"], leg_stiffness: Float[ArrayLike, "6"]
+    table: Table, pose: Float[ArrayLike, "6"], leg_stiffness: Float[ArrayLike, "#6"] | float
 ) -> Float[ArrayLike, "6 6"]:
     """K = Jᵀ diag(k) J (6, 6) at `pose`, about the platform origin, base axes; rows/columns
     x, y, z, rx, ry, rz; blocks N/mm, N (coupling), N·mm/rad. Legs are axial springs k_i N/mm
@@ -167,16 +173,16 @@ def pose_criteria(table: Table, hw: Hardware, pose: Float[ArrayLike, "6"]) -> di
 
 
 def _soft_max(x, p):
-    """(mean (x/x_max)ᵖ)^(1/p) · x_max for x > 0: ≤ max, → max as p → ∞."""
+    """(Σ (x/x_max)ᵖ)^(1/p) · x_max for x ≥ 0: an upper bound, max ≤ · ≤ max·n^(1/p)."""
     top = jax.lax.stop_gradient(jnp.max(x))
     safe = jnp.where(top > 0, top, 1.0)
-    return jnp.where(top > 0, safe * jnp.mean((x / safe) ** p) ** (1.0 / p), 0.0)
+    return jnp.where(top > 0, safe * jnp.sum((x / safe) ** p) ** (1.0 / p), 0.0)
 
 
 def _soft_min(x, p):
-    """(mean (x/x_min)⁻ᵖ)^(−1/p) · x_min for x > 0: ≥ min, → min as p → ∞."""
+    """(Σ (x/x_min)⁻ᵖ)^(−1/p) · x_min for x > 0: a lower bound, min·n^(−1/p) ≤ · ≤ min."""
     low = jax.lax.stop_gradient(jnp.min(x))
-    return low * jnp.mean((x / low) ** (-p)) ** (-1.0 / p)
+    return low * jnp.sum((x / low) ** (-p)) ** (-1.0 / p)
 
 
 def aggregate(per_pose: dict, smooth: float | None = None, coverage_width: float = 1.0) -> dict:
@@ -223,4 +229,11 @@ def criteria(
     per_pose = jax.vmap(lambda q: pose_criteria(table, hw, q))(poses)
     out = aggregate(per_pose, smooth, coverage_width)
     out["first_frequency_Hz"] = first_frequency(table, hw)
+    out["tolerance_cost"] = tolerance_cost(hw.tolerances)
     return out
+
+
+def tolerance_cost(tol: Tolerances) -> Float[ArrayLike, ""]:
+    """Σ_s t_s^paper / t_s: each source costs 1 at the paper's tolerance, ∝ 1/tolerance."""
+    paper = Tolerances()
+    return sum(getattr(paper, s) / jnp.asarray(getattr(tol, s)) for s in SOURCES)

@@ -5,7 +5,7 @@ over rounds, and the Pareto front between two criteria by the ε-constraint meth
 Each continuous variable v lives in its bounds [lo, hi] through v = lo + (hi − lo)·σ(z), so
 the optimiser works on an unbounded z and never leaves the bounds. The loss is
 
-    ± f(v) / |f(v0)|  +  μ Σ_j max(0, (g_j(v) − V_j) / |V_j|)²       (μ = 10, 10³, 10⁵)
+    ± f(v) / |f(v0)|  +  μ Σ_j max(0, (g_j(v) − V_j) / |V_j|)²       (μ = 10, 10³, 10⁵, 10⁷)
 
 with f the objective (sign: − for criteria where more is better) and g_j ≤ V_j (or ≥) the
 constraints, all smoothed (see `criteria`). Every start, discrete choice and ε is one row of
@@ -36,7 +36,8 @@ from .variables import (
     to_file_units,
 )
 
-MU = (1e1, 1e3, 1e5)
+MU = (1e1, 1e3, 1e5, 1e7)
+FEASIBLE = 1e-6  # relative violation below which a constraint counts as met
 HANDS = np.array(list(itertools.product([1.0, -1.0], repeat=6)))
 
 
@@ -195,7 +196,7 @@ def optimize_design(
     lead_catalogue=None,
     starts: int = 4,
     seed: int = 0,
-    smooth: float = 32.0,
+    smooth: float = 64.0,
     n_sweep: int = 7,
     n_random: int = 64,
     progress: bool = False,
@@ -289,7 +290,7 @@ def optimize_design(
         if epsilon is not None:
             v += np.maximum(0.0, _eps_violation(epsilon, exact[epsilon[0]][idx], eps_values[e]))
         obj = sign * exact[objective][idx]
-        ok = v <= 1e-6
+        ok = v <= FEASIBLE
         pick = (
             idx[int(np.argmin(np.where(ok, obj, np.inf)))] if ok.any() else idx[int(np.argmin(v))]
         )
@@ -308,7 +309,7 @@ def optimize_design(
             "op": k.op,
             "limit": k.limit,
             "value": best.values[k.name],
-            "met": bool(k.violation(best.values[k.name]) <= 1e-6),
+            "met": bool(k.violation(best.values[k.name]) <= FEASIBLE),
         }
         for k in cons
     ]

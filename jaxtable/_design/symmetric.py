@@ -48,7 +48,7 @@ def symmetric_table(
     base_axis_offset=0.0,
     platform_axis_offset=0.0,
     *,
-    platform_z: float = 0.0,
+    platform_z=0.0,
     lead=0.0,
     hand=1.0,
     stroke=(0.0, jnp.inf),

@@ -148,7 +148,7 @@ def default_bounds(name: str, value) -> tuple[np.ndarray, np.ndarray]:
         a, b = LIMITS[name]
         pad = 1e-3 * (b - a)
         lo, hi = np.maximum(lo, a + pad), np.minimum(hi, b - pad)
-    return lo, hi
+    return np.asarray(lo), np.asarray(hi)
 
 
 def check_design(design: Design) -> None:
