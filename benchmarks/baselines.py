@@ -79,7 +79,7 @@ def numpy_design_criteria(
 
     J = legs(poses)
     sv = np.linalg.svd(J * np.r_[np.ones(3), np.full(3, 1 / ell)], compute_uv=False)
-    lci = sv[:, -1] / sv[:, 0]
+    lci = 6.0 / np.sqrt(np.sum(sv**2, axis=1) * np.sum(sv**-2.0, axis=1))  # 1/κ_F
     K = leg_stiffness * np.einsum("nki,nkj->nij", J, J)
     C = np.linalg.inv(K)
     k_t = 1.0 / np.linalg.eigvalsh(C[:, :3, :3])[:, -1]

@@ -13,7 +13,11 @@ import jaxtable as jt
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout's benchmarks/
 
-from benchmarks.baselines import numpy_command, scipy_forward  # noqa: E402
+from benchmarks.baselines import (  # noqa: E402
+    numpy_command,
+    numpy_design_criteria,
+    scipy_forward,
+)
 from benchmarks.bench import kernel_op_counts, machine_limit  # noqa: E402
 
 
@@ -58,3 +62,20 @@ def test_bench_cli_quick_writes_every_figure(tmp_path):
     assert all("numpy_per_s" in x for x in r["ik"])
     assert all(x["converged"] == 1.0 for x in r["fk"])
     assert (tmp_path / "benchmark.md").read_text().count("|") > 50
+
+
+def test_numpy_design_baseline_equals_the_design_criteria(table):
+    design = jt.Design(jt.SymmetricDesign.from_table(table), jt.hardware_for(table))
+    poses = jt.design_poses(None, n_sweep=3, n_random=20, box=2)
+    hw = design.hardware
+    ours = jt.assess_design(design, workspace=poses).values
+    base = numpy_design_criteria(
+        design.table(),
+        float(hw.leg_stiffness[0]),
+        float(hw.moving_mass(design.table())),
+        float(hw.acceleration),
+        float(hw.characteristic_length),
+        poses,
+    )
+    for k, v in base.items():
+        assert ours[k] == pytest.approx(v, rel=1e-9), k

@@ -130,7 +130,7 @@ def test_acceleration_adds_the_worst_direction_force(design):
     assert float(q["leg_force"]) >= np.abs(F).max()
 
 
-def test_lci_is_one_over_the_condition_number_of_the_scaled_jacobian(design):
+def test_lci_is_one_over_the_frobenius_condition_number_of_the_scaled_jacobian(design):
     table = design.table()
     hw = design.hardware
     pose = jnp.array([50.0, 20.0, -30.0, 0.1, 0.05, -0.2])
@@ -138,7 +138,17 @@ def test_lci_is_one_over_the_condition_number_of_the_scaled_jacobian(design):
     ell = float(hw.characteristic_length)
     Jh = J * np.r_[np.ones(3), np.full(3, 1 / ell)]
     sv = np.linalg.svd(Jh, compute_uv=False)
-    assert float(pose_criteria(table, hw, pose)["lci"]) == pytest.approx(sv[-1] / sv[0], rel=1e-9)
+    kappa_f = np.sqrt(np.sum(sv**2) * np.sum(sv**-2)) / 6  # ‖J‖_F ‖J⁻¹‖_F / n by SVD
+    lci = float(pose_criteria(table, hw, pose)["lci"])
+    assert lci == pytest.approx(1 / kappa_f, rel=1e-10)
+    assert sv[-1] / sv[0] <= lci <= 6 * sv[-1] / sv[0]  # between 1/κ₂ and n/κ₂
+    # the cube at its centre, ℓ = a/2: JᵀJ = diag(2, 2, 2, a²/2, a²/2, 2a²) scaled by 1/ℓ² in
+    # rotation -> squared singular values 2, 2, 2, 2, 2, 8: LCI = 6 / sqrt(18 · 2.625)
+    a = 300.0
+    cube, _ = _cube_table(a)
+    hw_cube = jt.Hardware(1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.9, a / 2)
+    expected = 6 / math.sqrt((2 * 5 + 8) * (5 / 2 + 1 / 8))
+    assert float(pose_criteria(cube, hw_cube, jnp.zeros(6))["lci"]) == pytest.approx(expected)
 
 
 # ---------------------------------------------------------------- gradients and smoothing

@@ -1,6 +1,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jaxtable._linalg import cond_small, inv_small, solve_small
 
@@ -48,3 +49,18 @@ def test_small_lu_as_a_lineax_solver_matches_numpy_including_transpose():
     tstate, _ = solver.transpose(state, {})
     xt2, _, _ = solver.compute(tstate, jnp.asarray(b), {})
     np.testing.assert_allclose(np.asarray(xt2), np.linalg.solve(A.T, b), rtol=1e-10)
+
+
+def test_cholesky_and_generalized_eigenvalue_match_scipy():
+    from scipy.linalg import eigh
+
+    from jaxtable._linalg import cholesky_small, smallest_generalized_eigval
+
+    rng = np.random.default_rng(3)
+    A, B = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
+    K, M = A @ A.T + 0.5 * np.eye(6), B @ B.T + 0.1 * np.eye(6)
+    np.testing.assert_allclose(
+        np.asarray(cholesky_small(jnp.asarray(K))), np.linalg.cholesky(K), rtol=1e-12, atol=1e-12
+    )
+    lam = float(smallest_generalized_eigval(jnp.asarray(K), jnp.asarray(M)))
+    assert lam == pytest.approx(eigh(K, M, eigvals_only=True)[0], rel=1e-9)

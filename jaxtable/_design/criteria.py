@@ -7,9 +7,12 @@ J the 6×6 matrix of rows [u_i, m_i] (∂L/∂(translation, rotation vector)):
 
 - `coverage` (–): fraction of the poses whose margin min(L_i − lo, hi − L_i,
   (bend limit − bend_i)·ℓ) is ≥ 0 (mm; stroke and U-joint bend limits).
-- `gci`, `min_lci` (–): mean and worst of the local condition index
-  LCI = 1/κ(J diag(1, 1, 1, 1/ℓ, 1/ℓ, 1/ℓ)), κ the 2-norm condition number, ℓ the
-  characteristic length (mm).
+- `gci`, `min_lci` (–): mean and worst of the local condition index LCI = 1/κ_F(J_h),
+  J_h = J diag(1, 1, 1, 1/ℓ, 1/ℓ, 1/ℓ) (ℓ the characteristic length, mm), with Angeles'
+  Frobenius-norm condition number κ_F = ‖J_h‖_F ‖J_h⁻¹‖_F / 6: 1 for an isotropic Jacobian,
+  0 at a singularity, between κ₂/6 and κ₂ for the 2-norm κ₂, and, unlike κ₂ (a ratio of
+  singular values that is not differentiable where they cross), smooth everywhere, which a
+  gradient-based design needs.
 - `max_position_sigma_mm`, `max_rotation_sigma_arcsec`: worst RMS translation / rotation σ of
   the tolerance budget (spiral compensated; `errormap.budget_one`).
 - `max_spiral_error_mm`: worst ‖J⁻¹ Δl2‖ (translation): the uncompensated passive spiral.
@@ -49,7 +52,6 @@ from .._analysis.tolerances import SOURCES, Tolerances
 from .._effects import leg_forces
 from .._kinematics import joint_bend, leg_lengths, leg_lines
 from .._linalg import (
-    cond_small,
     inv_small,
     largest_eigval_small,
     smallest_generalized_eigval,
@@ -134,7 +136,8 @@ def pose_criteria(table: Table, hw: Hardware, pose: Float[ArrayLike, "6"]) -> di
     stiffness_r N·mm/rad, leg_force N, motor_torque N·m, motor_rpm."""
     J = leg_matrix(table, pose)
     ell = hw.characteristic_length
-    lci = 1.0 / cond_small(J * jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / ell)]))
+    Jh = J * jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / ell)])
+    lci = 6.0 / jnp.sqrt(jnp.sum(Jh**2) * jnp.sum(inv_small(Jh) ** 2))
     K = J.T @ (hw.leg_stiffness[:, None] * J)
     C = inv_small(K)
     k_t = 1.0 / largest_eigval_small(C[:3, :3])
@@ -185,7 +188,7 @@ def _soft_min(x, p):
     return low * jnp.sum((x / low) ** (-p)) ** (-1.0 / p)
 
 
-def aggregate(per_pose: dict, smooth: float | None = None, coverage_width: float = 1.0) -> dict:
+def aggregate(per_pose: dict, smooth=None, coverage_width: float = 1.0) -> dict:
     """Workspace criteria (scalars, CRITERIA keys except `first_frequency_Hz`) from the
     per-pose quantities of `pose_criteria` batched over poses ((N,) each). `smooth=None`:
     exact worst cases; `smooth=p`: power means (see the module docstring)."""
@@ -220,7 +223,7 @@ def criteria(
     table: Table,
     hw: Hardware,
     poses: Float[ArrayLike, "N 6"],
-    smooth: float | None = None,
+    smooth=None,
     coverage_width: float = 1.0,
 ) -> dict:
     """Every criterion of CRITERIA (scalars) of one design over the required poses (N, 6),
