@@ -59,12 +59,18 @@ def scipy_forward(table: Table, commands: np.ndarray) -> np.ndarray:
 
 
 def numpy_design_criteria(
-    table: Table, leg_stiffness: float, mass: float, accel: float, ell: float, poses: np.ndarray
+    table: Table,
+    leg_stiffness: float,
+    mass: float,
+    accel: float,
+    ell: float,
+    inertia: np.ndarray,
+    poses: np.ndarray,
 ) -> dict:
     """Baseline for the design criteria of one design over (N, 6) poses, vectorised numpy
     (np.linalg.svd / inv / solve / eigvalsh over the poses): worst and mean LCI, worst force
     stiffness, worst leg force (platform CoG at the origin), first frequency at home with the
-    moving mass `mass` and the disc inertia of `hardware_for`. A subset of jaxtable's
+    moving mass `mass` and principal inertia `inertia` (3,) kg·mm². A subset of jaxtable's
     criteria (no tolerance budget, no spiral error): the baseline does less work."""
     a = np.asarray(table.platform_joints)
     b = np.asarray(table.base_joints)
@@ -89,8 +95,7 @@ def numpy_design_criteria(
     G = np.concatenate([np.eye(3), np.zeros((3, 3))]) * (-mass * accel)
     B = np.linalg.solve(JT, np.broadcast_to(G, (len(poses), 6, 3)))
     force = np.abs(f0) + np.linalg.norm(B, axis=-1)
-    r = float(np.mean(np.linalg.norm(a[:, :2], axis=-1)))
-    M = np.diag([mass, mass, mass, mass * r**2 / 4, mass * r**2 / 4, mass * r**2 / 2])
+    M = np.diag(np.r_[mass, mass, mass, np.asarray(inertia, dtype=float)])
     K0 = leg_stiffness * legs(np.zeros((1, 6)))[0].T @ legs(np.zeros((1, 6)))[0]
     from scipy.linalg import eigh
 

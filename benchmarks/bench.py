@@ -447,6 +447,7 @@ def _bench_designs(table: Table, quick: bool) -> dict:
             float(d.hardware.moving_mass(d.table())),
             float(d.hardware.acceleration),
             float(d.hardware.characteristic_length),
+            np.asarray(d.hardware.inertia),
             poses,
         )
         for d in designs[:n_np]

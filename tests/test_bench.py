@@ -75,6 +75,7 @@ def test_numpy_design_baseline_equals_the_design_criteria(table):
         float(hw.moving_mass(design.table())),
         float(hw.acceleration),
         float(hw.characteristic_length),
+        np.asarray(hw.inertia),
         poses,
     )
     for k, v in base.items():
