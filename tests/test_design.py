@@ -425,3 +425,11 @@ def test_pareto_front_is_non_dominated_and_spans_the_two_optima(design, tmp_path
     lines = (tmp_path / "front.csv").read_text().splitlines()
     assert lines[0].split(",")[:3] == ["epsilon", "gci", "first_frequency_Hz"]
     assert len(lines) == len(pts) + 1
+
+
+def test_leg_stiffness_defaults_to_a_fitted_compliance():
+    eff = {"compliance": jt.Compliance.from_k([1e4, 2e4, 3e4, 4e4, 5e4, 6e4])}
+    hw = jt.hardware_for(REF, effects=eff)
+    np.testing.assert_allclose(np.asarray(hw.leg_stiffness), [1e4, 2e4, 3e4, 4e4, 5e4, 6e4])
+    rigid = jt.hardware_for(REF, effects={"compliance": jt.Compliance(0.0)})
+    np.testing.assert_allclose(np.asarray(rigid.leg_stiffness), 2e4)

@@ -116,8 +116,8 @@ def hardware_for(
 ) -> Hardware:
     """`Hardware` with the defaults of a mid-size IMU test table, filled from `table`:
 
-    - leg stiffness: from the model's `compliance` effect (k = 1/flex) when `effects` has one,
-      else 2e4 N/mm;
+    - leg stiffness: from the model's `compliance` effect (k = 1/flex) when `effects` has one
+      with every flex > 0, else 2e4 N/mm;
     - payload 100 kg (IMU and fixture), at the table's platform CoG;
     - inertia: a uniform disc of the platform-joint radius r holding the moving mass m
       (m r²/4, m r²/4, m r²/2);
@@ -129,7 +129,8 @@ def hardware_for(
     r = platform_joint_radius(table)
     if leg_stiffness is None:
         comp = (effects or {}).get("compliance")
-        leg_stiffness = DEFAULT_LEG_STIFFNESS if comp is None else 1.0 / comp.flex
+        fitted = comp is not None and bool(jnp.all(jnp.asarray(comp.flex) > 0))
+        leg_stiffness = 1.0 / comp.flex if fitted else DEFAULT_LEG_STIFFNESS
     m = table.platform_mass + payload
     if inertia is None:
         inertia = jnp.stack([m * r**2 / 4, m * r**2 / 4, m * r**2 / 2])
