@@ -13,8 +13,6 @@ from pathlib import Path
 import numpy as np
 
 import jaxtable as jt
-from jaxtable._design.variables import set_values, stack
-from jaxtable._reports.figures import pyplot
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 LEADS = [5.0, 10.0, 12.7, 16.0, 20.0]
@@ -31,9 +29,8 @@ def lead_trade(design, poses):
     designs = []
     for lead in LEADS:
         tol = jt.Tolerances(**{**jt.Tolerances().as_dict(), "spiral_lead": 1e-3 * lead})
-        d = set_values(design, {"lead": lead})
-        designs.append(set_values(d, {"tolerances.spiral_lead": tol.spiral_lead}))
-    c = jt.assess_designs(stack(designs), poses)
+        designs.append(design.replace({"lead": lead, "tolerances.spiral_lead": tol.spiral_lead}))
+    c = jt.assess_designs(jt.Design.stack(designs), poses)
     rows = [
         {
             "lead": lead,
@@ -48,7 +45,7 @@ def lead_trade(design, poses):
 
 
 def lead_figure(rows, path):
-    plt = pyplot()
+    plt = jt.reports.pyplot()
     lead = [r["lead"] for r in rows]
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
     ax[0].plot(lead, [1e3 * r["spiral_mm"] for r in rows], "o-", label="uncompensated spiral")
@@ -75,24 +72,23 @@ def geometry_maps(design, poses, n):
     R, A = np.meshgrid(ratio, angle, indexing="ij")
     base = float(design.geometry.base_radius)
     designs = [
-        set_values(
-            design,
+        design.replace(
             {
                 "platform_radius": r * base,
                 "base_half_angle": np.radians(a),
                 "platform_half_angle": np.radians(a),
-            },
+            }
         )
         for r, a in zip(R.ravel(), A.ravel())
     ]
     t0 = time.perf_counter()
-    c = jt.assess_designs(stack(designs), poses)
+    c = jt.assess_designs(jt.Design.stack(designs), poses)
     seconds = time.perf_counter() - t0
     return ratio, angle, {k: v.reshape(n, n) for k, v in c.items()}, seconds
 
 
 def maps_figure(ratio, angle, maps, ref, path):
-    plt = pyplot()
+    plt = jt.reports.pyplot()
     fig, axes = plt.subplots(2, 2, figsize=(11, 8.5))
     for ax, (key, title) in zip(axes.ravel(), MAP_KEYS):
         cs = ax.contourf(ratio, angle, maps[key].T, levels=16, cmap="viridis")

@@ -55,7 +55,6 @@ from .._linalg import (
     inv_small,
     largest_eigval_small,
     smallest_generalized_eigval,
-    solve_small,
 )
 from .._rotation import ARCSEC_PER_RAD, rotation_matrix
 from .._table import Table
@@ -135,11 +134,12 @@ def pose_criteria(table: Table, hw: Hardware, pose: Float[ArrayLike, "6"]) -> di
     margin mm, lci, position_sigma mm, rotation_sigma rad, spiral_error mm, stiffness_t N/mm,
     stiffness_r N·mm/rad, leg_force N, motor_torque N·m, motor_rpm."""
     J = leg_matrix(table, pose)
+    Jinv = inv_small(J)  # one factorisation serves dexterity, stiffness and statics
     ell = hw.characteristic_length
-    Jh = J * jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / ell)])
-    lci = 6.0 / jnp.sqrt(jnp.sum(Jh**2) * jnp.sum(inv_small(Jh) ** 2))
-    K = J.T @ (hw.leg_stiffness[:, None] * J)
-    C = inv_small(K)
+    scale = jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / ell)])
+    # J_h = J diag(scale): ‖J_h⁻¹‖_F = ‖diag(1/scale) J⁻¹‖_F
+    lci = 6.0 / jnp.sqrt(jnp.sum((J * scale) ** 2) * jnp.sum((Jinv / scale[:, None]) ** 2))
+    C = Jinv @ (Jinv.T / hw.leg_stiffness[:, None])  # K⁻¹ = J⁻¹ diag(1/k) J⁻ᵀ
     k_t = 1.0 / largest_eigval_small(C[:3, :3])
     k_r = 1.0 / largest_eigval_small(C[3:, 3:])
 
@@ -147,7 +147,7 @@ def pose_criteria(table: Table, hw: Hardware, pose: Float[ArrayLike, "6"]) -> di
     f0 = leg_forces(table, pose, hw.payload)
     rc = rotation_matrix(pose[3:]) @ table.platform_cog
     G = -mass * hw.acceleration * jnp.concatenate([jnp.eye(3), _skew(rc)])  # wrench per unit a
-    B = solve_small(J.T, G)
+    B = Jinv.T @ G  # leg forces per unit acceleration: Jᵀ F = wrench
     force = jnp.abs(f0) + jnp.linalg.norm(B, axis=1)
     lead = table.lead
     torque = force * lead / (2 * jnp.pi * hw.efficiency) / 1000.0

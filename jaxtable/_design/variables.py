@@ -63,6 +63,17 @@ class Design(eqx.Module):
         g = self.geometry
         return g if isinstance(g, Table) else g.table()
 
+    def replace(self, values: dict) -> "Design":
+        """This design with the named variables replaced (name -> array, internal units: mm,
+        rad, N/mm; names as `--vary` takes them, e.g. `platform_radius`, `lead`,
+        `tolerances.SRC`)."""
+        return set_values(self, values)
+
+    @staticmethod
+    def stack(designs: list["Design"]) -> "Design":
+        """Designs stacked leaf by leaf (leading axis n), for `assess_designs` / `jax.vmap`."""
+        return stack(designs)
+
 
 def variable_names(design: Design) -> list[str]:
     """Every name `--vary` accepts for this design."""
