@@ -105,6 +105,8 @@ from ._design.optimize import (  # noqa: E402
 from ._design.symmetric import SymmetricDesign, symmetric_table  # noqa: E402
 from ._design.variables import Design  # noqa: E402
 from ._discovery.diagnose import Diagnosis, diagnose, heldout_rms  # noqa: E402
+from ._discovery.power import Power as DetectionPower  # noqa: E402
+from ._discovery.power import detection_power  # noqa: E402
 from ._discovery.structure import StructureTest, structure_test  # noqa: E402
 from ._effects import (  # noqa: E402
     EFFECTS,
@@ -262,7 +264,9 @@ __all__ = [
     "parse_sigma",
     # discovery
     "Diagnosis",
+    "DetectionPower",
     "StructureTest",
+    "detection_power",
     "diagnose",
     "heldout_rms",
     "structure_test",

@@ -98,6 +98,8 @@ BEFORE = [
 ]
 
 ADDED = [
+    "DetectionPower",
+    "detection_power",
     "DESIGN_CRITERIA",
     "Design",
     "DesignAssessment",

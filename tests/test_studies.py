@@ -38,6 +38,7 @@ STUDIES = {
         ["discovery_paper.md", "discovery_fig9_trend.png", "discovery_effect_*.png"],
     ),
     "discovery_dictionary": ([], ["discovery_dictionary.md"]),
+    "discovery_power": ([], ["discovery_power.md", "discovery_power.png"]),
     "design_tradeoffs": (
         [],
         ["design_tradeoffs.md", "design_lead.png", "design_geometry_maps.png"],
@@ -59,7 +60,13 @@ def run_quick(name: str, extra: list, out: Path) -> subprocess.CompletedProcess:
 # quick runs that take more than ~90 s from a cold compilation cache on 2 cores (about
 # 140 s and 190 s: their fits and diagnose compile for every data shape; the design study
 # about 130 s: its optimisations compile once each)
-SLOW = {"calibration_study", "discovery_paper", "discovery_dictionary", "design_tradeoffs"}
+SLOW = {
+    "calibration_study",
+    "discovery_paper",
+    "discovery_dictionary",
+    "discovery_power",
+    "design_tradeoffs",
+}
 
 
 @pytest.mark.parametrize(

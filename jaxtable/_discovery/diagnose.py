@@ -339,6 +339,17 @@ def _norm_rms(cal: Calibration, rows: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r**2)))
 
 
+def discovery_setup(
+    nominal: Table, data: Measurements, *, compensated: bool | None = None, sigma=None
+) -> Setup:
+    """The set-up every discovery fit shares: the geometry, every model effect (the
+    dictionary's `discovered` included) at its null value, all of them with θ entries, so
+    that nested models and folds are masks of one compiled program."""
+    effects = {name: cls.null(len(data.sessions)) for name, cls in MODEL_EFFECTS.items()}
+    free_all = GEOMETRY + tuple(f for n in MODEL_EFFECTS for f in params.effect_parameters(n))
+    return setup(nominal, data, free_all, effects=effects, compensated=compensated, sigma=sigma)
+
+
 def diagnose(
     nominal: Table | Measurements,  # (data, table): the deprecated order
     data: Measurements | Table,
@@ -403,10 +414,7 @@ def diagnose(
     for name in list(base) + library:
         if name not in EFFECTS:
             raise ValueError(f"unknown effect '{name}'; known: {', '.join(EFFECTS)}")
-    n_sessions = len(data.sessions)
-    effects = {name: cls.null(n_sessions) for name, cls in MODEL_EFFECTS.items()}
-    free_all = GEOMETRY + tuple(f for n in MODEL_EFFECTS for f in params.effect_parameters(n))
-    st = setup(nominal, data, free_all, effects=effects, compensated=compensated, sigma=sigma)
+    st = discovery_setup(nominal, data, compensated=compensated, sigma=sigma)
     mask = st.mask
     all_rows = np.arange(len(data))
     fold_rows = make_folds(len(data), folds, seed)

@@ -35,7 +35,7 @@ import numpy as np
 from .._calibration.fit import Calibration, Setup
 from .._calibration.measurements import Measurements
 from .._calibration.noise import fit_basis
-from .structure import whitened
+from .structure import Whitened, whitened
 
 
 @dataclass(frozen=True)
@@ -145,6 +145,46 @@ def candidates(st: Setup, data: Measurements) -> list[TermCandidate]:
     return [c for c in out if all(k in names for k in c.keys)]
 
 
+@dataclass(frozen=True)
+class Bases:
+    """Orthonormal bases of what each candidate adds to a fit: for candidate c with
+    (whitened) Jacobian columns X_c, Q_c spans X⊥ = (I − U Uᵀ) X_c (U: the fit's column
+    space). `Q` (M, Σ r_c) all bases side by side, `bounds` (C + 1,) their column ranges,
+    `kept` (C,) ‖X⊥‖ / ‖X‖ (0 for a candidate with no columns)."""
+
+    Q: np.ndarray
+    bounds: np.ndarray
+    kept: np.ndarray
+
+    @classmethod
+    def of(cls, Jf: np.ndarray, U: np.ndarray, columns: list) -> "Bases":
+        """`Jf` (M, P) whitened full Jacobian, `U` (M, r), `columns`: per candidate, the
+        indices of its columns in `Jf`."""
+        bases, kept = [], []
+        for cols in columns:
+            X = Jf[:, cols]
+            Xp = X - U @ (U.T @ X)
+            nx, nxp = np.linalg.norm(X), np.linalg.norm(Xp)
+            kept.append(nxp / nx if nx > 0 else 0.0)
+            bases.append(fit_basis(Xp, 1e-8) if nx > 0 and nxp > 0 else np.zeros((len(Jf), 0)))
+        Q = np.concatenate(bases, axis=1) if bases else np.zeros((len(Jf), 0))
+        return cls(Q, np.cumsum([0] + [q.shape[1] for q in bases]), np.asarray(kept))
+
+    @property
+    def rank(self) -> np.ndarray:
+        """(C,) columns of each candidate's basis."""
+        return np.diff(self.bounds)
+
+    def delta_chi2(self, res: np.ndarray, dof: float) -> np.ndarray:
+        """Δχ² (b, C) of adding each candidate to the fit, for residuals `res` (b, M) of
+        that fit, in units of the noise the residuals themselves imply (s² = ‖res‖²/dof)."""
+        sq = (res @ self.Q) ** 2
+        csum = np.concatenate([np.zeros((len(res), 1)), np.cumsum(sq, axis=1)], axis=1)
+        parts = csum[:, self.bounds[1:]] - csum[:, self.bounds[:-1]]
+        scale = np.sum(res**2, axis=1, keepdims=True) / max(dof, 1.0)
+        return parts / scale
+
+
 @dataclass
 class Screening:
     """Scores of the candidates against one fit (see the module docstring).
@@ -169,6 +209,18 @@ class Screening:
         return None if live.size == 0 else int(live[np.argmax(self.score[live])])
 
 
+def null_max_scores(
+    w: Whitened, basis: Bases, penalty: np.ndarray, live: np.ndarray, draws: int, seed: int
+) -> np.ndarray:
+    """(draws,) the largest penalised score (Δχ² − `penalty`) over the `live` candidates, for
+    Monte Carlo null residuals of the fit `w` describes (`Whitened.null_draws`)."""
+    out = [
+        np.where(live, basis.delta_chi2(z.reshape(len(z), -1), w.dof) - penalty, -np.inf).max(1)
+        for z in w.null_draws(draws, seed)
+    ]
+    return np.concatenate(out) if out else np.zeros(0)
+
+
 def screen(
     cal: Calibration,
     st: Setup,
@@ -189,40 +241,21 @@ def screen(
     n_obs = int(w.mask.sum())
     penalty = np.log(max(n_obs, 2))
     e = w.e.reshape(-1)
-    bases, kept, coefs = [], [], []
+    basis = Bases.of(Jf, w.U, [[index[k] for k in c.keys] for c in cands])
+    kept = basis.kept
+    coefs = []
     for c in cands:
         X = Jf[:, [index[k] for k in c.keys]]
         Xp = X - w.U @ (w.U.T @ X)
-        nx = np.linalg.norm(X)
-        kept.append(np.linalg.norm(Xp) / nx if nx > 0 else 0.0)
-        Q = fit_basis(Xp, 1e-8) if nx > 0 and np.linalg.norm(Xp) > 0 else np.zeros((len(e), 0))
-        bases.append(Q)
         beta, *_ = np.linalg.lstsq(Xp, -e, rcond=1e-10)  # residual = model − measured
         coefs.append(tuple(float(b) for b in beta))
-    kept = np.asarray(kept)
     # a term the model reproduces to 1e-3 of its norm cannot be estimated at all
     absorbed = kept < 1e-3
     k = np.array([len(c.keys) for c in cands], float)
-    Qall = np.concatenate(bases, axis=1) if bases else np.zeros((len(e), 0))
-    bounds = np.cumsum([0] + [q.shape[1] for q in bases])
 
-    def scores(res):  # res (b, M) -> Δχ² (b, C)
-        proj = res @ Qall
-        sq = proj**2
-        parts = np.stack(
-            [sq[:, bounds[i] : bounds[i + 1]].sum(axis=1) for i in range(len(cands))], axis=1
-        )
-        scale = np.sum(res**2, axis=1, keepdims=True) / max(w.dof, 1.0)
-        return parts / scale
-
-    d_obs = scores(e[None, :])[0]
+    d_obs = basis.delta_chi2(e[None, :], w.dof)[0]
     score = d_obs - k * penalty
-    live = ~absorbed
-    null_max = []
-    for z in w.null_draws(draws, seed):
-        sc = scores(z.reshape(len(z), -1)) - k * penalty
-        null_max.append(np.where(live, sc, -np.inf).max(axis=1))
-    null_max = np.concatenate(null_max) if null_max else np.zeros(0)
+    null_max = null_max_scores(w, basis, k * penalty, ~absorbed, draws, seed)
     threshold = float(np.quantile(null_max, 1.0 - alpha)) if draws else float("nan")
     # absorbed: almost all of the term is what the model already does, and what is left
     # has no evidence (a term that is 99 % reproduced yet still significant is tested)
