@@ -8,8 +8,11 @@ the amplitude where it reaches 90 %; how often noise alone names anything; and f
 runs (perturbed geometry, nonlinear model, every round and held-out check) at 3σ, 100 stops,
 6-D tracker, as the check on the linearised first round `jt.detection_power` computes.
 
-Every run: two sessions (the tracker set up anew for the second), a temperature ramp of 10 °C
-and payloads of 0, 50 or 100 kg, so that every library effect and dictionary family can show.
+Every run: two sessions (the tracker set up anew for the second), a lab temperature that rises
+5 °C over the run and cycles ±1.5 °C three times (air conditioning), and payloads of 0, 50 or
+100 kg, so that every library effect and dictionary family can show. The plan (the poses) is
+the same for every run of one size; noise, temperatures, payloads and, in the full checks,
+the table's geometric errors are drawn afresh.
 
 Run:  python studies/discovery_power.py [--quick] [--out DIR]
       (writes discovery_power.md and discovery_power.png into DIR, default results/)
@@ -62,18 +65,21 @@ def nominal_table():
 
 
 def run(nominal, true, n, tracker, effects, seed):
+    """One run: the same random plan for every seed (the amplitude is a property of the plan),
+    fresh noise, temperatures and payloads."""
     rng = np.random.default_rng(10_000 + seed)
+    t = np.arange(n) / n
     return jt.simulate(
         nominal,
         true,
-        jt.plan_random(n, seed),
+        jt.plan_random(n, 1),
         TRACKERS[tracker](),
         effects=effects,
         compensated=False,
         seed=seed,
         session=np.repeat(["1", "2"], [n // 2, n - n // 2]),
         frame=[[0, 0, 0, 0, 0, 0], [15.0, -8.0, 4.0, 0.01, -0.005, 0.02]],
-        temperature=20 + 10 * np.arange(n) / n + rng.normal(0, 0.2, n),
+        temperature=20 + 5 * t + 1.5 * np.sin(2 * np.pi * 3 * t) + rng.normal(0, 0.2, n),
         payload=rng.choice([0.0, 50.0, 100.0], n),
     )
 
@@ -86,6 +92,8 @@ def scaled(mods, c):
 def first_name(diag):
     """What `diagnose` named first: ('library', name), ('term', candidate) or None."""
     for step in diag.steps:
+        if not step.added:
+            continue
         if step.added.startswith("term "):
             return "term", diag.discovered[0].candidate
         if step.added:
@@ -103,9 +111,10 @@ def named_right(first, truth_label, truth):
     return kind == "term" and what.family == family and set(legs) <= set(what.legs)
 
 
-def truth_of(label):
-    """(family, legs) of a planted dictionary term, from its label."""
-    term, _, where = label.partition(" on ")
+def truth_of(candidate_label):
+    """(family, legs) of a dictionary candidate, from its label ("s^2 on leg 3",
+    "d*s on legs 1-6 (shared)")."""
+    term, _, where = candidate_label.partition(" on ")
     family = "s[j]" if term.startswith("s[") else term
     legs = range(1, 7) if "shared" in where else [int(where.split()[-1])]
     return family, tuple(legs)
@@ -186,7 +195,7 @@ def main(argv=None):
     check_rows = []
     for label in ref.labels if not args.quick else ["s^2 on leg 3", "backlash"]:
         c = ref.coefficient_at(label, TARGET)
-        truth = None if label in jt.EFFECTS else truth_of(label)
+        truth = None if label in jt.EFFECTS else truth_of(ref.truth[ref.labels.index(label)])
         hits, names = 0, []
         for s in range(checks):
             seed = 100 + s
@@ -215,7 +224,8 @@ def main(argv=None):
         "# Discovery power: the amplitude at which `diagnose` names an effect",
         "",
         "Reference table (150 kg platform), random stops in two sessions (the tracker set up "
-        "anew for the second), a 10 °C temperature ramp, payloads 0/50/100 kg; 6-D tracker "
+        "anew for the second), lab temperature +5 °C over the run with a ±1.5 °C cycle, "
+        "payloads 0/50/100 kg; 6-D tracker "
         "10 µm / 2″, point tracker 10 µm. Amplitude: the planted effect's largest reading "
         "change over the run, in units of that reading's σ. Probabilities: `jt.detection_power`"
         f" (diagnose's first round on its linearisation, {trials} trials per point); the "
