@@ -6,7 +6,8 @@ table — the regime the question is about, effects of a few σ. For a plan (`da
 columns, σ, temperatures and sessions of a run) the base fit (geometry and instrument
 frames) gives the full Jacobian J and the base fit's column space U. A planted effect with
 parameter step θ adds the signal x = J θ to the readings; its amplitude is the largest |x|
-over the measured cells in units of that cell's stated σ (peak signal / σ). Each
+over the measured cells in units of that cell's stated σ (peak signal / σ; a file without σ
+columns: the noise model's default σ per column, as `setup` assigns it). Each
 Monte Carlo trial draws residuals r = (I − U Uᵀ)(a x̂ + z) (z the noise with the rows'
 correlation, exactly as the structure test and the dictionary threshold draw it) and applies
 the first round's rules to them:
