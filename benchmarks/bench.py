@@ -35,6 +35,7 @@ from jaxtable import (
     Table,
     actuator_command,
     command_function,
+    error_map,
     fit,
     forward_solve,
     perturb_table,
@@ -343,6 +344,20 @@ def run_benchmark(table: Table, quick: bool = False, log=print) -> dict:
         f"{de['numpy_design_poses_per_s']:.3g} design-poses/s"
     )
 
+    # -- tolerance error map
+    r["error_map"] = _bench_error_map(table, quick)
+    em = r["error_map"]
+    log(f"error map (full budget), {em['poses']:.0e} poses: {em['per_s']:.3g} poses/s")
+
+    # -- diagnose on the bundled example, cold and warm compilation cache
+    if not quick:
+        r["diagnose"] = _diagnose_wall()
+        dg = r["diagnose"]
+        log(
+            f"diagnose (bundled example): first {dg['first_s']:.0f} s, "
+            f"repeat {dg['repeat_s']:.0f} s"
+        )
+
     # -- big streamed map in a child process (peak memory)
     r["map"] = _map_peak(10 if quick else 100)
     m = r["map"]
@@ -469,6 +484,39 @@ def _bench_designs(table: Table, quick: bool) -> dict:
     }
 
 
+def _diagnose_wall(runs: int = 2) -> dict:
+    """Wall time of `jaxtable diagnose` on the bundled example, each run a fresh process
+    (start-up, tracing, compilation, fits, report and figures), the first with an empty
+    persistent compilation cache and the next ones reusing it."""
+    import tempfile
+
+    out = {"runs": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, JAXTABLE_CACHE_DIR=str(Path(tmp) / "cache"))
+        for k in range(runs):
+            t0 = time.perf_counter()
+            subprocess.run(
+                [sys.executable, "-m", "jaxtable.cli", "diagnose", "--out", f"{tmp}/d{k}"],
+                capture_output=True,
+                text=True,
+                check=True,
+                env=env,
+            )
+            out["runs"].append(time.perf_counter() - t0)
+    out["first_s"] = out["runs"][0]
+    out["repeat_s"] = min(out["runs"][1:]) if runs > 1 else float("nan")
+    return out
+
+
+def _bench_error_map(table: Table, quick: bool) -> dict:
+    """The paper's full tolerance budget (6 sources, std/bias/cond/reachability) over random
+    commanded poses, streamed in chunks with the summary statistics."""
+    n = 10**4 if quick else 10**6
+    q = _poses(n, seed=5)
+    first, t = _timed(lambda: error_map(table, grid=q, keep=False), 2 if quick else 3)
+    return {"poses": n, "per_s": n / t, "compile_s": max(first - t, 0.0)}
+
+
 def markdown(r: dict) -> str:
     """The benchmark as a Markdown report."""
     L = [
@@ -558,6 +606,17 @@ def markdown(r: dict) -> str:
         f"computing 5 of the criteria (LCI, GCI, stiffness, leg force, frequency; no budget): "
         f"{de['numpy_design_poses_per_s']:.3g} design-poses/s; largest relative difference "
         f"{de['numpy_max_rel_diff']:.1e} |",
+        f"| tolerance error map (6 sources, σ per source, spiral bias, condition number, "
+        f"reachability, streamed summary), {r['error_map']['poses']:.0e} random poses | "
+        f"{r['error_map']['per_s']:.3g} poses/s (compile {r['error_map']['compile_s']:.1f} s) |",
+    ]
+    if "diagnose" in r:
+        L.append(
+            f"| `jaxtable diagnose` on the bundled example (150 rows; a fresh process each "
+            f"run) | first run (empty compilation cache) {r['diagnose']['first_s']:.0f} s, "
+            f"repeat {r['diagnose']['repeat_s']:.0f} s |"
+        )
+    L += [
         f"| streamed command map, {m['poses']:.0e} poses (x, y, z, yaw grid) | "
         f"{m['seconds']:.1f} s = {m['poses'] / m['seconds']:.3g} poses/s, peak resident "
         f"memory {m['peak_rss_mib']:.0f} MiB |",

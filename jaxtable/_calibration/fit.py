@@ -162,22 +162,31 @@ residual_jit = eqx.filter_jit(residual)
 
 
 @eqx.filter_jit
-def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_newton", rcond=1e-6):
-    """Gauss-Newton in Jacobi-scaled variables u (θ = θ0 + D·mask·u, D = 1 / column norms of the
-    Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps. `mask` (P,)
-    (0/1, traced) freezes parameters without recompiling, so nested models and folds of one
-    data set share one compilation."""
-    flat0, unravel = ravel_pytree(theta0)
+def _jacobian(problem, layout, theta):
+    """(J (N·6, P), residual (N·6,), solved (N,)) at θ: the weighted residual, its Jacobian
+    with respect to every flat parameter (jacfwd; the forward kinematics differentiate
+    implicitly), and whether each row's forward solve succeeded. One program serves the
+    start and the end of every fit of a data set's shape."""
+    flat, unravel = ravel_pytree(theta)
 
     def res_flat(f):
-        return residual(unravel(f), (problem, layout))
+        reading, solved = _predict(problem, layout, unravel(f))
+        diff = wrap_reading_difference(reading - problem.measured)
+        r = (diff * problem.weight).reshape(-1)
+        return r, (r, solved)
 
-    J0 = jax.jacfwd(res_flat)(flat0)
-    norms = jnp.linalg.norm(J0, axis=0)
-    D = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 1.0) * mask
+    J, (r, solved) = jax.jacfwd(res_flat, has_aux=True)(flat)
+    return J, r, solved
+
+
+@eqx.filter_jit
+def _descend(problem, layout, theta0, D, rtol, atol, max_steps, method="gauss_newton", rcond=1e-6):
+    """Least squares in Jacobi-scaled variables u (θ = θ0 + D·u). Returns (θ, converged,
+    steps)."""
+    flat0, unravel = ravel_pytree(theta0)
 
     def res_scaled(u, _):
-        return res_flat(flat0 + D * u)
+        return residual(unravel(flat0 + D * u), (problem, layout))
 
     # Gauss-Newton with a truncated-SVD least-squares step: the problems are nearly linear
     # (µm-level corrections, frames initialised in closed form), so it converges in a few
@@ -191,11 +200,26 @@ def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_n
     sol = optx.least_squares(
         res_scaled, solver, jnp.zeros_like(flat0), None, max_steps=max_steps, throw=False
     )
-    flat = flat0 + D * sol.value
-    J = jax.jacfwd(res_flat)(flat)
-    value = unravel(flat)
-    _, solved = _predict(problem, layout, value)
-    return value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], J, solved
+    value = unravel(flat0 + D * sol.value)
+    return value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+
+
+def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_newton", rcond=1e-6):
+    """Gauss-Newton (or LM) in Jacobi-scaled variables (θ = θ0 + D·mask·u, D = 1 / column
+    norms of the Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps.
+    `mask` (P,) (0/1, traced) freezes parameters without recompiling, so nested models and
+    folds of one data set share one compilation. Two programs per data-set shape: the
+    Jacobian (`_jacobian`, run at the start and at the optimum) and the descent.
+
+    Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ)."""
+    J0, r0, _ = _jacobian(problem, layout, theta0)
+    norms = jnp.linalg.norm(J0, axis=0)
+    D = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 1.0) * mask
+    value, converged, steps = _descend(
+        problem, layout, theta0, D, rtol, atol, max_steps, method, rcond
+    )
+    J, r, solved = _jacobian(problem, layout, value)
+    return value, converged, steps, J, solved, r0, r
 
 
 def _kabsch(P, Q):
@@ -703,16 +727,15 @@ def _fit_once(
             lambda p: p.weight, problem, problem.weight * jnp.asarray(use, float)[:, None]
         )
     mask = st.mask & use[:, None]
-    before = np.asarray(residual_jit(theta0, (problem, layout))).reshape(-1, 6)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
     args = (problem, layout, theta0, jnp.asarray(fm), rtol, atol, max_steps)
-    value, converged, steps, J, solved = _solve(*args, method, identifiability_tol)
+    value, converged, steps, J, solved, r0, r = _solve(*args, method, identifiability_tol)
     if method == "gauss_newton" and not (bool(converged) and np.all(np.asarray(solved)[use])):
         # undamped steps along weakly determined directions left the region where the
         # forward kinematics converge (e.g. an x-only instrument on a line): LM's damping
         # keeps them bounded
-        value, converged, steps, J, solved = _solve(
+        value, converged, steps, J, solved, r0, r = _solve(
             *args, "levenberg_marquardt", identifiability_tol
         )
     if not np.all(np.asarray(solved)[use]):
@@ -721,7 +744,8 @@ def _fit_once(
             f"forward kinematics failed at the fitted parameters for row(s) "
             f"{(bad + 1).tolist()[:10]}"
         )
-    after = np.asarray(residual_jit(value, (problem, layout))).reshape(-1, 6)
+    before = np.asarray(r0).reshape(-1, 6)
+    after = np.asarray(r).reshape(-1, 6)
     on = fm > 0
     J_full = np.asarray(J)
     J = J_full[:, on]
