@@ -8,9 +8,7 @@ jax 0.10.2 in about one run in two). These kernels are ordinary fused element-wi
 no custom call; at n = 6 they are as fast.
 """
 
-import jax
 import jax.numpy as jnp
-import lineax as lx
 from jaxtyping import ArrayLike, Float
 
 
@@ -106,54 +104,3 @@ def smallest_generalized_eigval(
     1 / λ_max(Lᵀ K⁻¹ L)."""
     L = cholesky_small(M)
     return 1.0 / largest_eigval_small(L.T @ solve_small(K, L))
-
-
-class SmallLU(lx.AbstractLinearSolver):
-    """A lineax linear solver for small square systems by `lu_small` / `lu_solve_small`.
-
-    Drop-in for `lx.LU()` in optimistix solvers whose unknown is one flat array (the 6-D
-    forward-kinematics Newton): the same partial-pivoting elimination, but as fused element-wise
-    code, with no LAPACK custom call. Batched under `vmap` it is faster at n = 6, and it is safe
-    where LAPACK calls deadlock (several simulated CPU devices, see the module docstring).
-    A singular matrix gives non-finite values, which optimistix reports as a failed solve.
-    """
-
-    def init(self, operator, options):
-        del options
-        if operator.in_size() != operator.out_size():
-            raise ValueError("SmallLU needs a square operator")
-        if not (
-            isinstance(operator.in_structure(), jax.ShapeDtypeStruct)
-            and len(operator.in_structure().shape) == 1
-        ):
-            raise ValueError("SmallLU needs an operator on a flat (n,) array")
-        return lu_small(operator.as_matrix()), False
-
-    def compute(self, state, vector, options):
-        del options
-        (LU, perm), transposed = state
-        if transposed:
-            x = solve_small(_from_lu(LU, perm).T, vector[:, None])[:, 0]
-        else:
-            x = lu_solve_small(LU, perm, vector[:, None])[:, 0]
-        return x, lx.RESULTS.successful, {}
-
-    def transpose(self, state, options):
-        (LU, perm), transposed = state
-        return ((LU, perm), not transposed), {}
-
-    def conj(self, state, options):
-        return state, {}
-
-    def assume_full_rank(self):
-        return True
-
-
-def _from_lu(LU, perm):
-    """A from its `lu_small` factors (for the rarely used transposed solve)."""
-    n = LU.shape[0]
-    L = jnp.tril(LU, -1) + jnp.eye(n, dtype=LU.dtype)
-    U = jnp.triu(LU)
-    PA = L @ U
-    P = (perm[:, None] == jnp.arange(n)[None, :]).astype(LU.dtype)
-    return P.T @ PA

@@ -12,7 +12,7 @@ jax.config.update("jax_enable_x64", True)
 CACHE = Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"
 os.environ["JAXTABLE_CACHE_DIR"] = str(CACHE)
 jax.config.update("jax_compilation_cache_dir", str(CACHE))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 import jaxtable as jt  # noqa: E402
 

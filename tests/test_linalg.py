@@ -29,28 +29,6 @@ def test_solve_is_linear_in_b_for_reverse_mode():
     np.testing.assert_allclose(np.asarray(g), 2 * np.linalg.solve(np.asarray(A).T, x), rtol=1e-10)
 
 
-def test_small_lu_as_a_lineax_solver_matches_numpy_including_transpose():
-    import lineax as lx
-
-    from jaxtable._linalg import SmallLU
-
-    rng = np.random.default_rng(2)
-    A = rng.normal(size=(6, 6))
-    A[0, 0] = 0.0  # forces a pivot
-    b = rng.normal(size=6)
-    op = lx.MatrixLinearOperator(jnp.asarray(A))
-    x = lx.linear_solve(op, jnp.asarray(b), SmallLU()).value
-    np.testing.assert_allclose(np.asarray(x), np.linalg.solve(A, b), rtol=1e-10)
-    xt = lx.linear_solve(op.T, jnp.asarray(b), SmallLU()).value
-    np.testing.assert_allclose(np.asarray(xt), np.linalg.solve(A.T, b), rtol=1e-10)
-    # the transposed state of a factorisation solves Aᵀ (as reverse-mode autodiff uses it)
-    solver = SmallLU()
-    state = solver.init(op, {})
-    tstate, _ = solver.transpose(state, {})
-    xt2, _, _ = solver.compute(tstate, jnp.asarray(b), {})
-    np.testing.assert_allclose(np.asarray(xt2), np.linalg.solve(A.T, b), rtol=1e-10)
-
-
 def test_cholesky_and_generalized_eigenvalue_match_scipy():
     from scipy.linalg import eigh
 

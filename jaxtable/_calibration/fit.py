@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
@@ -161,13 +160,10 @@ def residual(theta, args):
 residual_jit = eqx.filter_jit(residual)
 
 
-@eqx.filter_jit
-def _jacobian(problem, layout, theta):
-    """(J (N·6, P), residual (N·6,), solved (N,)) at θ: the weighted residual, its Jacobian
-    with respect to every flat parameter (jacfwd; the forward kinematics differentiate
-    implicitly), and whether each row's forward solve succeeded. One program serves the
-    start and the end of every fit of a data set's shape."""
-    flat, unravel = ravel_pytree(theta)
+def _residual_and_jacobian(problem, layout, unravel):
+    """f ↦ (J (N·6, P), (residual (N·6,), solved (N,))) on the flat parameters: the weighted
+    residual and its Jacobian (jacfwd, primal shared; the forward kinematics differentiate
+    implicitly), with whether each row's forward solve succeeded."""
 
     def res_flat(f):
         reading, solved = _predict(problem, layout, unravel(f))
@@ -175,48 +171,125 @@ def _jacobian(problem, layout, theta):
         r = (diff * problem.weight).reshape(-1)
         return r, (r, solved)
 
-    J, (r, solved) = jax.jacfwd(res_flat, has_aux=True)(flat)
-    return J, r, solved
+    return jax.jacfwd(res_flat, has_aux=True)
 
 
 @eqx.filter_jit
-def _descend(problem, layout, theta0, D, rtol, atol, max_steps, method="gauss_newton", rcond=1e-6):
-    """Least squares in Jacobi-scaled variables u (θ = θ0 + D·u). Returns (θ, converged,
-    steps)."""
+def _jacobian(problem, layout, theta):
+    """(J, residual, solved) at θ (see `_residual_and_jacobian`)."""
+    flat, unravel = ravel_pytree(theta)
+    J, (r, solved) = _residual_and_jacobian(problem, layout, unravel)(flat)
+    return J, r, solved
+
+
+def _scales(J, mask):
+    """Jacobi scaling D (P,) = mask / column norms of J (1 for a zero column)."""
+    norms = jnp.linalg.norm(J, axis=0)
+    return jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 1.0) * mask
+
+
+@eqx.filter_jit
+def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e-6):
+    """Gauss-Newton in Jacobi-scaled variables u (θ = θ0 + D·u, D = `_scales` of the
+    Jacobian at θ0) with truncated-SVD least-squares steps: singular values below `rcond` ×
+    the largest (frozen, i.e. masked, and unidentifiable directions) get no step, so those
+    parameters stay at their start values instead of drifting.
+
+    One `while_loop` whose body evaluates the residual and its Jacobian once: the start's
+    Jacobian sets D, the last one is the Jacobian at the returned θ, so a fit is one
+    program with one copy of the forward solve (what its tracing and compile time scale
+    with). Stopping rule: optimistix's Cauchy rule for its `GaussNewton`: stop at the
+    evaluated point u_k when max|u_k − u_k−1| / (atol + rtol·|u_k|) < 1 and
+    max|r_k − r_k−1| / (atol + rtol·|r_k|) < 1.
+
+    Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ)."""
+    flat0, unravel = ravel_pytree(theta0)
+    evaluate = _residual_and_jacobian(problem, layout, unravel)
+    n_res, n_rows, P = problem.measured.size, problem.measured.shape[0], flat0.shape[0]
+
+    def cond(c):
+        return ~c["done"] & (c["k"] < max_steps) & jnp.all(jnp.isfinite(c["f"]))
+
+    def body(c):
+        k, f = c["k"], c["f"]
+        J, (r, solved) = evaluate(f)
+        D = jnp.where(k == 0, _scales(J, mask), c["D"])
+        r0 = jnp.where(k == 0, r, c["r0"])
+        on = D > 0
+        u = jnp.where(on, (f - flat0) / jnp.where(on, D, 1.0), 0.0)
+        du = jnp.where(on, (f - c["f_prev"]) / jnp.where(on, D, 1.0), 0.0)
+        small_u = jnp.max(jnp.abs(du) / (atol + rtol * jnp.abs(u))) < 1
+        small_r = jnp.max(jnp.abs(r - c["r"]) / (atol + rtol * jnp.abs(r))) < 1
+        done = (k > 0) & small_u & small_r
+        U, sv, Vt = jnp.linalg.svd(J * D, full_matrices=False)
+        keep = sv > rcond * sv[0]
+        step = -Vt.T @ (jnp.where(keep, 1.0 / jnp.where(keep, sv, 1.0), 0.0) * (U.T @ r))
+        return dict(
+            k=k + 1,
+            f=jnp.where(done, f, f + D * step),
+            f_prev=f,
+            r=r,
+            r0=r0,
+            J=J,
+            D=D,
+            solved=solved,
+            done=done,
+        )
+
+    init = dict(
+        k=jnp.array(0),
+        f=flat0,
+        f_prev=flat0,
+        r=jnp.zeros(n_res),
+        r0=jnp.zeros(n_res),
+        J=jnp.zeros((n_res, P)),
+        D=jnp.zeros(P),
+        solved=jnp.zeros(n_rows, bool),
+        done=jnp.array(False),
+    )
+    c = jax.lax.while_loop(cond, body, init)
+    # the last evaluated point: J, r and solved belong to it
+    return unravel(c["f_prev"]), c["done"], c["k"], c["J"], c["solved"], c["r0"], c["r"]
+
+
+@eqx.filter_jit
+def _levenberg_marquardt(
+    problem, layout, theta0, D, rtol, atol, max_steps, method="levenberg_marquardt"
+):
+    """optimistix Levenberg-Marquardt in the scaled variables of `_gauss_newton`. Returns
+    (θ, converged, steps)."""
     flat0, unravel = ravel_pytree(theta0)
 
     def res_scaled(u, _):
         return residual(unravel(flat0 + D * u), (problem, layout))
 
-    # Gauss-Newton with a truncated-SVD least-squares step: the problems are nearly linear
-    # (µm-level corrections, frames initialised in closed form), so it converges in a few
-    # steps where LM's trust region takes tens; singular values below rcond × the largest
-    # (frozen, i.e. masked, and unidentifiable directions) get no step, so they stay at their
-    # start values instead of drifting.
-    if method == "gauss_newton":
-        solver = optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.SVD(rcond=rcond))
-    else:
-        solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     sol = optx.least_squares(
-        res_scaled, solver, jnp.zeros_like(flat0), None, max_steps=max_steps, throw=False
+        res_scaled,
+        optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+        jnp.zeros_like(flat0),
+        None,
+        max_steps=max_steps,
+        throw=False,
     )
     value = unravel(flat0 + D * sol.value)
     return value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
 
 def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_newton", rcond=1e-6):
-    """Gauss-Newton (or LM) in Jacobi-scaled variables (θ = θ0 + D·mask·u, D = 1 / column
-    norms of the Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps.
-    `mask` (P,) (0/1, traced) freezes parameters without recompiling, so nested models and
-    folds of one data set share one compilation. Two programs per data-set shape: the
-    Jacobian (`_jacobian`, run at the start and at the optimum) and the descent.
+    """Fit in Jacobi-scaled variables (θ = θ0 + D·mask·u, D = 1 / column norms of the
+    Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps. `mask` (P,)
+    (0/1, traced) freezes parameters without recompiling, so nested models and folds of one
+    data set share one compilation. "gauss_newton": `_gauss_newton`, one program;
+    "levenberg_marquardt": optimistix's LM between two Jacobian evaluations (the start's
+    sets D).
 
     Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ)."""
+    if method == "gauss_newton":
+        return _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond)
     J0, r0, _ = _jacobian(problem, layout, theta0)
-    norms = jnp.linalg.norm(J0, axis=0)
-    D = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 1.0) * mask
-    value, converged, steps = _descend(
-        problem, layout, theta0, D, rtol, atol, max_steps, method, rcond
+    D = _scales(J0, mask)
+    value, converged, steps = _levenberg_marquardt(
+        problem, layout, theta0, D, rtol, atol, max_steps
     )
     J, r, solved = _jacobian(problem, layout, value)
     return value, converged, steps, J, solved, r0, r

@@ -714,7 +714,9 @@ def signatures(diag: Diagnosis) -> dict:
     n = len(s)
     ctx = problem.ctx
     forces = np.asarray(
-        jax.vmap(lambda q, m: leg_forces(nominal, q, m))(jnp.asarray(data.cmd_pose), ctx.payload)
+        eqx.filter_jit(jax.vmap(leg_forces, in_axes=(None, 0, 0)))(
+            nominal, jnp.asarray(data.cmd_pose), ctx.payload
+        )
     )
     lead = np.abs(np.asarray(nominal.lead))
     return {
