@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from conftest import random_poses
 
 import jaxtable as jt
 from jaxtable._analysis.errormap import PoseList, error_map, workspace_slice
@@ -86,6 +87,18 @@ def test_reachable_cond_and_bias_against_independent_truth(table):
     exact = np.asarray(jt.forward(table, jt.actuator_command(table, poses[:1], compensated=False)))
     err = exact[0] - poses[0]
     np.testing.assert_allclose(emap.bias[0, :3], err[:3], atol=0.02 * np.abs(err[:3]).max())
+
+
+def test_map_without_condition_number_keeps_every_other_figure(table):
+    poses = random_poses(300, seed=21)
+    full, s_full = error_map(table, Tolerances(), PoseList(poses))
+    lean, s_lean = error_map(table, Tolerances(), PoseList(poses), cond=False)
+    np.testing.assert_array_equal(lean.std, full.std)
+    np.testing.assert_array_equal(lean.bias, full.bias)
+    np.testing.assert_array_equal(lean.reachable, full.reachable)
+    assert np.isnan(lean.cond).all() and np.isfinite(full.cond).all()
+    assert np.isnan(s_lean["cond_max"]) and s_full["cond_max"] > 1
+    assert s_lean["sources"] == s_full["sources"]
 
 
 def test_map_cli_writes_report_and_refuses_bad_tolerances(tmp_path, capsys):
