@@ -39,6 +39,7 @@ STUDIES = {
     ),
     "discovery_dictionary": ([], ["discovery_dictionary.md"]),
     "discovery_power": ([], ["discovery_power.md", "discovery_power.png"]),
+    "discovery_null": ([], ["discovery_null.md"]),
     "design_tradeoffs": (
         [],
         ["design_tradeoffs.md", "design_lead.png", "design_geometry_maps.png"],
@@ -59,12 +60,14 @@ def run_quick(name: str, extra: list, out: Path) -> subprocess.CompletedProcess:
 
 # quick runs that take more than ~90 s from a cold compilation cache on 2 cores (about
 # 140 s and 190 s: their fits and diagnose compile for every data shape; the design study
-# about 130 s: its optimisations compile once each)
+# about 130 s: its optimisations compile once each; the null study's 4 diagnoses repeat
+# what the default suite's 20-seed null test does)
 SLOW = {
     "calibration_study",
     "discovery_paper",
     "discovery_dictionary",
     "discovery_power",
+    "discovery_null",
     "design_tradeoffs",
 }
 
