@@ -1,7 +1,7 @@
 """False discoveries of the whole `jaxtable diagnose` pipeline on noise-only data.
 
 Each data set is a 150-stop run of the reference table (150 kg platform) read by a 6-D
-tracker (10 µm, 2″): fresh geometric errors (joints σ 10 µm, L0 σ 50 µm), a fresh random
+tracker (5 µm, 2″): fresh geometric errors (joints σ 10 µm, L0 σ 50 µm), a fresh random
 plan, two sessions (the tracker set up anew, at a fresh offset, for the second half), a lab
 temperature rising 5 °C over the run with a ±1.5 °C air-conditioning cycle, payloads of 0, 50
 or 100 kg, and the tracker's noise: the geometric model is all there is. The controller

@@ -3,7 +3,7 @@
 For every library effect and every dictionary family, planted one at a time in runs of the
 reference table: the probability that diagnose's first round names it (the first name is what
 was planted), against its amplitude (peak reading change in units of the reading's σ), at
-50, 100 and 200 random stops, for a 6-D tracker (10 µm, 2″) and a 3-D point tracker (10 µm);
+50, 100 and 200 random stops, for a 6-D tracker (5 µm, 2″) and a 3-D point tracker (10 µm);
 the amplitude where it reaches 90 %; how often noise alone names anything; and full `diagnose`
 runs (perturbed geometry, nonlinear model, every round and held-out check) at 3σ, 100 stops,
 6-D tracker, as the check on the linearised first round `jt.detection_power` computes.
@@ -226,7 +226,7 @@ def main(argv=None):
         "Reference table (150 kg platform), random stops in two sessions (the tracker set up "
         "anew for the second), lab temperature +5 °C over the run with a ±1.5 °C cycle, "
         "payloads 0/50/100 kg; 6-D tracker "
-        "10 µm / 2″, point tracker 10 µm. Amplitude: the planted effect's largest reading "
+        "5 µm / 2″, point tracker 10 µm. Amplitude: the planted effect's largest reading "
         "change over the run, in units of that reading's σ. Probabilities: `jt.detection_power`"
         f" (diagnose's first round on its linearisation, {trials} trials per point); the "
         "check: full `diagnose` runs. Regenerate: `python studies/discovery_power.py`.",

@@ -149,12 +149,17 @@ def _predict(problem: Problem, layout: Layout, theta, options=ForwardOptions()):
     return jax.vmap(one)(problem.s, problem.guess, problem.session, problem.ctx)
 
 
+def _weighted_residual(problem: Problem, layout: Layout, theta):
+    """(residual (N·6,), solved (N,)): (reading − measured) / σ per cell (0 where not
+    measured), and whether each row's forward solve succeeded."""
+    reading, solved = _predict(problem, layout, theta)
+    diff = wrap_reading_difference(reading - problem.measured)
+    return (diff * problem.weight).reshape(-1), solved
+
+
 def residual(theta, args):
     problem, layout = args
-    reading, _ = _predict(problem, layout, theta)
-    diff = reading - problem.measured
-    diff = wrap_reading_difference(diff)
-    return (diff * problem.weight).reshape(-1)
+    return _weighted_residual(problem, layout, theta)[0]
 
 
 residual_jit = eqx.filter_jit(residual)
@@ -166,9 +171,7 @@ def _residual_and_jacobian(problem, layout, unravel):
     implicitly), with whether each row's forward solve succeeded."""
 
     def res_flat(f):
-        reading, solved = _predict(problem, layout, unravel(f))
-        diff = wrap_reading_difference(reading - problem.measured)
-        r = (diff * problem.weight).reshape(-1)
+        r, solved = _weighted_residual(problem, layout, unravel(f))
         return r, (r, solved)
 
     return jax.jacfwd(res_flat, has_aux=True)

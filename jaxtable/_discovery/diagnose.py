@@ -50,7 +50,7 @@ from .. import _params as params
 from .._calibration.fit import Calibration, Setup, fit, setup
 from .._calibration.heldout import heldout_rms, make_folds
 from .._calibration.measurements import Measurements
-from .._effects import EFFECTS, MODEL_EFFECTS
+from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._table import Table
 from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
 from .structure import StructureTest, structure_test
@@ -681,6 +681,10 @@ def _leg_lengths_jvp(table, poses, dq):
     )
 
 
+# (N,) poses and payloads -> (N, 6) static leg forces, N (one compiled program per shape)
+_leg_forces_batch = eqx.filter_jit(jax.vmap(leg_forces, in_axes=(None, 0, 0)))
+
+
 def leg_residuals(diag: Diagnosis, cal: Calibration) -> np.ndarray | None:
     """(N, 6) leg-length equivalent of the pose residuals (mm): δL = (∂L/∂q) δq, with δq
     the measured-minus-model pose rotated back from the instrument frame and ∂L/∂q of the
@@ -706,18 +710,13 @@ def signatures(diag: Diagnosis) -> dict:
     rotation Δα (deg), direction d, screw phase 2π s/p (rad), temperature (°C), leg force
     (N), session index."""
     from .._api import rod_rotation
-    from .._effects import leg_forces
 
     st, data, nominal = diag.setup, diag.data, diag.nominal
     problem = st.problem
     s = np.asarray(problem.s)
     n = len(s)
     ctx = problem.ctx
-    forces = np.asarray(
-        eqx.filter_jit(jax.vmap(leg_forces, in_axes=(None, 0, 0)))(
-            nominal, jnp.asarray(data.cmd_pose), ctx.payload
-        )
-    )
+    forces = np.asarray(_leg_forces_batch(nominal, jnp.asarray(data.cmd_pose), ctx.payload))
     lead = np.abs(np.asarray(nominal.lead))
     return {
         "extension s (mm)": s,
