@@ -105,6 +105,8 @@ from ._design.optimize import (  # noqa: E402
 from ._design.symmetric import SymmetricDesign, symmetric_table  # noqa: E402
 from ._design.variables import Design  # noqa: E402
 from ._discovery.diagnose import Diagnosis, diagnose, heldout_rms  # noqa: E402
+from ._discovery.dictionary import DiscriminationPlan, discrimination_plan  # noqa: E402
+from ._discovery.gp import ResidualGP, residual_gp  # noqa: E402
 from ._discovery.power import Power as DetectionPower  # noqa: E402
 from ._discovery.power import detection_power  # noqa: E402
 from ._discovery.structure import StructureTest, structure_test  # noqa: E402
@@ -269,6 +271,10 @@ __all__ = [
     "detection_power",
     "diagnose",
     "heldout_rms",
+    "residual_gp",
+    "discrimination_plan",
+    "DiscriminationPlan",
+    "ResidualGP",
     "structure_test",
     # report writers
     "reports",

@@ -201,7 +201,7 @@ def _calibrate(args) -> int:
 
 def _diagnose(args) -> int:
     from ._calibration.measurements import load_measurements
-    from ._discovery.diagnose import diagnose
+    from ._discovery.diagnose import diagnose, group_label
     from ._effects import EFFECTS
     from ._reports.diagnose import write_report
 
@@ -247,8 +247,20 @@ def _diagnose(args) -> int:
         print(f"discovered: {f.words}")
     if diag.absorbed:
         print(f"absorbed (the model already reproduces them here): {', '.join(diag.absorbed)}")
+    for group, plan in zip(diag.ambiguous, diag.plans):
+        print(
+            "ambiguous: "
+            + " / ".join(group_label(c) for c in group)
+            + f"; {plan['plan']}: {plan['plan_words']}"
+        )
     if diag.structure is not None:
         print(diag.structure.words())
+    if diag.residual_model is not None:
+        gp = diag.residual_model
+        print(
+            f"a GP residual model gains {100 * gp.gain:.1f} % on held-out rows; it depends "
+            f"most on: {'; '.join(gp.hints()[:4])}"
+        )
     print(f"wrote {json_path} and {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0
 

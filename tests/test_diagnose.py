@@ -195,6 +195,11 @@ def test_effect_outside_the_library_is_unexplained(seed):
     assert diag.unexplained, diag.selected
     assert diag.selected == [], diag.selected  # no library name is forced on it
     assert diag.structure.hints[0] in ("extensions", "extensions, direction")
+    # the flexible model sees it too: a held-out gain, and extensions as what it depends on
+    gp = diag.residual_model
+    assert gp is not None and gp.gain > 0.05, gp
+    assert "extension" in gp.hints()[0], gp.components
+    assert diag.as_json()["residual_model"]["hints"] == gp.hints()
     diag = diagnose(nominal, data, log=_quiet)
     assert diag.selected == [] and not diag.unexplained, diag.selected
     # the per-leg coefficients drawn here are alike (1-3e-6 /mm): the data may describe
@@ -239,6 +244,11 @@ def test_effects_found_without_sigma_columns():
     diag = diagnose(nominal, _misstated(data, 1.25), log=_quiet, discover=False)
     assert diag.unexplained and diag.selected == [], diag.selected
     assert diag.structure.hints[0] in ("extensions", "extensions, direction")
+    # the flexible model sees it too: a held-out gain, and extensions as what it depends on
+    gp = diag.residual_model
+    assert gp is not None and gp.gain > 0.05, gp
+    assert "extension" in gp.hints()[0], gp.components
+    assert diag.as_json()["residual_model"]["hints"] == gp.hints()
 
 
 @pytest.mark.slow

@@ -219,7 +219,8 @@ def test_absorbed_term_is_reported():
 def test_ambiguous_terms_are_reported_with_a_plan(tmp_path):
     """Temperature that steps with the session (20 °C in the first, 30 °C in the second): a
     scale that grows with temperature and a scale that changes between sessions are the same
-    function of these data, so the finding is reported ambiguous, with a pose plan."""
+    function of these data, so the finding is reported ambiguous, with a pose plan that says
+    poses alone cannot separate them."""
     temperature = np.where(np.arange(N) < N // 2, 20.0, 30.0)
     nominal, data = _plant(
         {"discovered": Discovered(Ts_all=1.5e-5)}, 12, sessions=2, temperature=temperature
@@ -237,6 +238,11 @@ def test_ambiguous_terms_are_reported_with_a_plan(tmp_path):
     doc = diag.as_json()
     assert {"T*s", "session*s"} <= set(doc["ambiguous"][0])
     assert doc["ambiguous_detail"][0]["plan"] == plans[0].name
+    # the two differ only in the conditions: a plan continuing the last session at its
+    # temperature cannot separate them, and the report says so
+    assert doc["ambiguous_detail"][0]["separates"] is False
+    assert doc["ambiguous_detail"][0]["correlation"][1] > 0.95
+    assert "poses alone cannot" in (tmp_path / "report.md").read_text()
 
 
 def test_library_effect_and_term_the_data_cannot_tell_apart():
@@ -250,3 +256,39 @@ def test_library_effect_and_term_the_data_cannot_tell_apart():
     doc = diag.as_json()
     assert doc["ambiguous"] == [["thermal", "t"]], doc["ambiguous"]
     assert doc["ambiguous_detail"][0]["candidates"] == ["thermal (library effect)", "t on leg 1"]
+
+
+def test_discrimination_plan_beats_as_many_random_poses():
+    """s² and s³ on leg 3, on a run whose stops all extend the legs (z from 30 to 60 mm): on
+    a one-sided range the two curves are nearly proportional, so their coefficients are
+    confounded. The Ds-optimal plan (20 poses from 600 candidates) must separate them better
+    than 20 random poses from the same box (a plan drawn from exactly 20 candidates), in both
+    of its measures (the correlation of the two coefficients and the Δχ² by which s³ would
+    fit worse), and name the conditions it assumes."""
+    from jaxtable._calibration.fit import fit
+    from jaxtable._discovery.diagnose import discovery_setup
+    from jaxtable._discovery.dictionary import candidates, discrimination_plan
+    from jaxtable._params import GEOMETRY
+
+    nominal = jt.reference_table()
+    rng = np.random.default_rng(4)
+    lo, hi = np.array([-20, -20, 30, -0.02, -0.02, -0.02]), np.array([20, 20, 60, 0.02, 0.02, 0.02])
+    poses = lo + rng.uniform(size=(60, 6)) * (hi - lo)
+    true = perturb_table(nominal, 4, joint_sigma=0.010, zero_sigma=0.050)
+    eff = {"discovered": Discovered(s2=[0, 0, 3e-6, 0, 0, 0])}
+    data = simulate(nominal, true, poses, tracker6(), effects=eff, compensated=False, seed=4)
+    st = discovery_setup(nominal, data, compensated=False)
+    by_label = {c.label: c for c in candidates(st, data)}
+    group = [by_label["s^2 on leg 3"], by_label["s^3 on leg 3"]]
+    mask = st.free_mask(GEOMETRY)
+    mask[st.names.index("discovered.s2[3]")] = 1.0
+    cal = fit(st, mask)
+    plan = discrimination_plan(cal, st, data, group, 20, candidates=600)
+    rand = discrimination_plan(cal, st, data, group, 20, candidates=20, seed=1)
+    assert plan.poses.shape == (20, 6)
+    assert plan.correlation_before == pytest.approx(rand.correlation_before)
+    assert plan.correlation_before > 0.9  # confounded by these data
+    assert plan.correlation_after < rand.correlation_after < plan.correlation_before
+    assert plan.separation_after > rand.separation_after > plan.separation_before
+    assert plan.context == {"session": "1", "temperature": 20.0, "payload": 0.0}
+    assert f"{plan.correlation_after:.2f}" in plan.words()

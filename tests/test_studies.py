@@ -40,6 +40,7 @@ STUDIES = {
     "discovery_dictionary": ([], ["discovery_dictionary.md"]),
     "discovery_power": ([], ["discovery_power.md", "discovery_power.png"]),
     "discovery_null": ([], ["discovery_null.md"]),
+    "discovery_baselines": ([], ["discovery_baselines.md", "discovery_baselines.png"]),
     "design_tradeoffs": (
         [],
         ["design_tradeoffs.md", "design_lead.png", "design_geometry_maps.png"],
@@ -61,13 +62,15 @@ def run_quick(name: str, extra: list, out: Path) -> subprocess.CompletedProcess:
 # quick runs that take more than ~90 s from a cold compilation cache on 2 cores (about
 # 140 s and 190 s: their fits and diagnose compile for every data shape; the design study
 # about 130 s: its optimisations compile once each; the null study's 4 diagnoses repeat
-# what the default suite's 20-seed null test does)
+# what the default suite's 20-seed null test does; the baselines' 3 diagnoses and GP fits
+# what test_gp and test_diagnose check)
 SLOW = {
     "calibration_study",
     "discovery_paper",
     "discovery_dictionary",
     "discovery_power",
     "discovery_null",
+    "discovery_baselines",
     "design_tradeoffs",
 }
 

@@ -191,8 +191,13 @@ def _reduce(jac: np.ndarray, tol: float):
     return scale, V, (jac / scale) @ V
 
 
-def _objective(F, G, criterion: str):
-    """Criterion value (to maximise) of F + G_iᵀ G_i for every candidate i: G (M, m, r)."""
+def _objective(F, G, criterion: str, nuisance=None):
+    """Criterion value (to maximise) of F + G_iᵀ G_i for every candidate i: G (M, m, r).
+    "Ds" (`nuisance`: indices of the nuisance parameters): log det F − log det F_nn, the
+    D-criterion of the other parameters with the nuisance ones estimated alongside."""
+    if criterion == "Ds":
+        nn = jnp.asarray(nuisance)
+        return _objective(F, G, "D") - _objective(F[nn][:, nn], G[..., nn], "D")
     L = jnp.linalg.cholesky(F)
     # B_i = G_i L⁻ᵀ so that G_i F⁻¹ G_iᵀ = B_i B_iᵀ
     B = jax.vmap(lambda g: jax.scipy.linalg.solve_triangular(L, g.T, lower=True).T)(G)
@@ -209,8 +214,11 @@ def _objective(F, G, criterion: str):
     return -jnp.trace(Finv) + jnp.trace(jnp.linalg.solve(A, CCt), axis1=1, axis2=2)
 
 
-def _value(F, criterion: str):
+def _value(F, criterion: str, nuisance=None):
     """Criterion value (to maximise) of one information matrix F (r, r)."""
+    if criterion == "Ds":
+        nn = jnp.asarray(nuisance)
+        return _value(F, "D") - _value(F[nn][:, nn], "D")
     L = jnp.linalg.cholesky(F)
     if criterion == "D":
         return 2.0 * jnp.sum(jnp.log(jnp.diag(L)))
@@ -223,15 +231,16 @@ def _info(G, chosen):
 
 
 @eqx.filter_jit
-def _greedy_exchange(G, k, eps, criterion, passes):
-    """Indices (k,) of a greedy + exchange design, its ridge criterion value and the number
-    of accepted swaps."""
+def _greedy_exchange(G, k, prior, criterion, passes, nuisance=None):
+    """Indices (k,) of a greedy + exchange design, its criterion value (with the `prior`
+    information (r, r) added: a small ridge, or what earlier data already hold) and the
+    number of accepted swaps. `nuisance`: a static tuple of indices, for "Ds"."""
     M, _, r = G.shape
-    ridge = eps * jnp.eye(r)
+    ridge = prior
 
     def add(j, state):
         chosen, order = state
-        val = _objective(ridge + _info(G, chosen), G, criterion)
+        val = _objective(ridge + _info(G, chosen), G, criterion, nuisance)
         val = jnp.where(chosen > 0, -jnp.inf, val)
         i = jnp.argmax(val)
         return chosen.at[i].set(1.0), order.at[j].set(i)
@@ -242,7 +251,7 @@ def _greedy_exchange(G, k, eps, criterion, passes):
         chosen, order, value, n = state
         out = order[j]
         base = chosen.at[out].set(0.0)
-        val = _objective(ridge + _info(G, base), G, criterion)
+        val = _objective(ridge + _info(G, base), G, criterion, nuisance)
         val = jnp.where(base > 0, -jnp.inf, val)
         i = jnp.argmax(val)
         better = val[i] > value + 1e-10 * jnp.abs(value) + 1e-12
@@ -262,7 +271,7 @@ def _greedy_exchange(G, k, eps, criterion, passes):
     def again(state):
         return (state[4] < passes) & state[5]
 
-    value = _value(ridge + _info(G, chosen), criterion)
+    value = _value(ridge + _info(G, chosen), criterion, nuisance)
     state = (chosen, order, value, jnp.asarray(0), jnp.asarray(0), jnp.asarray(True))
     _, order, value, n, _, _ = jax.lax.while_loop(again, one_pass, state)
     return order, value, n
@@ -382,7 +391,11 @@ def select(
         )
     eps = ridge * float(np.sum(G**2)) / (M * r)
     order, _, swaps = _greedy_exchange(
-        jnp.asarray(G), int(k), jnp.asarray(eps), criterion, int(passes) if exchange else 0
+        jnp.asarray(G),
+        int(k),
+        jnp.asarray(eps) * jnp.eye(r),
+        criterion,
+        int(passes) if exchange else 0,
     )
     index = np.asarray(order)
     q, cov = _quality(jac, index, scale, V, tol)

@@ -53,6 +53,7 @@ from .._calibration.measurements import Measurements
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._table import Table
 from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
+from .gp import ResidualGP, residual_gp
 from .structure import StructureTest, structure_test
 
 GEOMETRY = params.GEOMETRY
@@ -253,11 +254,17 @@ class Diagnosis:
     discovered: list = field(default_factory=list)  # Finding per dictionary term found
     absorbed: list = field(default_factory=list)  # term strings the model reproduces
     ambiguous: list = field(default_factory=list)  # groups of TermCandidate
+    # per ambiguous group: {"file", "words", "separates", ...} of its discrimination plan,
+    # filled when a report is written (`reports.write_diagnosis_report`)
+    plans: list = field(default_factory=list)
     screenings: list = field(default_factory=list, repr=False)  # Screening per round
     discovery_alpha: float = 0.05
     setup: Setup = field(repr=False, default=None)
     data: Measurements = field(repr=False, default=None)
     nominal: Table = field(repr=False, default=None)
+    # when structure remains unexplained: the GP residual model of the final fit (`gp.py`),
+    # what a flexible model gains on held-out rows and what it depends on (hints)
+    residual_model: ResidualGP | None = None
 
     @property
     def rms_sigma_before(self) -> float:
@@ -303,11 +310,13 @@ class Diagnosis:
             "ambiguous_detail": [
                 {
                     "candidates": [group_label(c) for c in group],
-                    "plan": next(
-                        (f.plan for f in self.discovered if f.candidate is group[0]), None
+                    **(
+                        self.plans[i]
+                        if i < len(self.plans)
+                        else {"plan": None, "plan_words": None, "separates": None}
                     ),
                 }
-                for group in self.ambiguous
+                for i, group in enumerate(self.ambiguous)
             ],
             "unexplained": bool(self.unexplained),
             "gain": {
@@ -328,6 +337,14 @@ class Diagnosis:
                 "groups": None if self.final.noise is None else self.final.noise.as_json(),
             },
             "structure": None if self.structure is None else self.structure.as_json(),
+            "residual_model": None
+            if self.residual_model is None
+            else {
+                "heldout_gain": self.residual_model.gain,
+                "hints": self.residual_model.hints(),
+                "components": dict(list(self.residual_model.components.items())[:8]),
+                "noise": self.residual_model.noise,
+            },
             "selected_params": {
                 name: {f: {"value": v.tolist(), "std": s.tolist()} for f, (v, s) in p.items()}
                 for name, p in ((n, self.effect_params(n)) for n in self.selected)
@@ -371,6 +388,7 @@ def diagnose(
     draws: int = 1000,
     discover: bool = True,
     discovery_alpha: float = 0.05,
+    flexible: bool = True,
     max_terms: int = 3,
     ambiguity: float = 6.0,
     priority: float = 10.0,
@@ -402,6 +420,11 @@ def diagnose(
     held-out rows, and refits everything jointly; up to `max_terms` rounds. Terms whose
     penalised scores are within `ambiguity` of the best are reported with it as one
     ambiguous finding.
+
+    When structure remains that nothing named explains (`unexplained`), a Gaussian-process
+    residual model of the final fit (`gp.residual_gp`; `flexible=False` skips it) says what
+    a flexible model would gain on held-out rows and what the residuals depend on
+    (`residual_model`, its `hints()`).
     """
     if isinstance(nominal, Measurements) and isinstance(data, Table):
         warnings.warn(
@@ -642,6 +665,14 @@ def diagnose(
     to_final = np.where(mask, final.weight / np.where(mask, base_fit.weight, 1.0), 0.0)
     heldout_before = heldout_rms(base_fit, fold_rows, mask, rescale=to_final)
     final_structure = steps[-1].structure if steps[-1].fit is final else test(final)
+    residual_model = None
+    if final_structure.structure and flexible:
+        log("structure remains that nothing named explains: a GP residual model for hints ...")
+        residual_model = residual_gp(final, st, folds=folds, seed=seed)
+        log(
+            f"  GP residual model: held-out gain {100 * residual_model.gain:+.1f} %; "
+            f"strongest: {'; '.join(residual_model.hints()[:3])}"
+        )
     return Diagnosis(
         selected=[m for m in model if m not in base and m != "discovered"],
         discovered=found,
@@ -665,6 +696,7 @@ def diagnose(
         setup=st,
         data=data,
         nominal=nominal,
+        residual_model=residual_model,
     )
 
 

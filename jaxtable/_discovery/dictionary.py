@@ -30,6 +30,8 @@ beats that law's 1 − `alpha` quantile, so noise-only data yield any discovery 
 
 from dataclasses import dataclass, field
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
 from .._calibration.fit import Calibration, Setup
@@ -324,36 +326,200 @@ def term_effect(cand: TermCandidate, coefficient, n_sessions: int = 1):
     return Discovered(**values)
 
 
-def discrimination_plan(
-    nominal, data: Measurements, group: list, coefficients: list, n: int = 20, seed: int = 0
-) -> np.ndarray:
-    """(n, 6) commanded poses (mm / rad) that tell the candidates of an ambiguous `group`
-    apart: among 4000 reachable poses drawn in the box of the data's commanded poses
-    (widened by 20 %), those where the candidates, each with its fitted `coefficients`,
-    predict leg lengths that differ most (largest max-over-legs difference between any two
-    of them), at the data's mean temperature, extending, mid-run, first session."""
-    import jax
-    import jax.numpy as jnp
+@dataclass(frozen=True)
+class DiscriminationPlan:
+    """Poses that tell the members of an ambiguous group apart (`discrimination_plan`).
 
+    - `poses` (n, 6): commanded poses, mm / rad, in the order chosen;
+    - `members`: labels of the group; `correlation_before` / `correlation_after`: the largest
+      canonical correlation between the first member's coefficients and any rival's in the
+      joint fit (1: the data cannot tell them apart), from these data and with the plan added;
+    - `separation_before` / `separation_after`: Δχ² by which the closest rival would fit
+      worse if the first member, at its fitted value, is what the table does (linearised;
+      NaN when the first member's value is not fitted); `context`: the conditions the plan
+      assumes (dict).
+    """
+
+    poses: np.ndarray
+    members: list
+    correlation_before: float
+    correlation_after: float
+    separation_before: float
+    separation_after: float
+    context: dict
+
+    @property
+    def separates(self) -> bool:
+        """Whether the plan makes the rivals distinguishable: the correlation drops below
+        0.9 or the separation reaches Δχ² ≥ 9 (three σ)."""
+        return bool(self.correlation_after < 0.9 or self.separation_after >= 9.0)
+
+    def words(self) -> str:
+        pre = (
+            f"{len(self.poses)} poses (continuing session {self.context['session']}, "
+            f"{self.context['temperature']:.1f} °C, payload {self.context['payload']:g} kg, "
+            "each approached extending)"
+        )
+        figures = f"correlation of their coefficients {self.correlation_before:.2f} → " + (
+            f"{self.correlation_after:.2f}"
+        )
+        if np.isfinite(self.separation_after):
+            figures += (
+                f"; the closest rival would fit worse by Δχ² {self.separation_before:.1f} → "
+                f"{self.separation_after:.1f}"
+            )
+        if self.separates:
+            return f"{pre} tell them apart ({figures})"
+        return (
+            f"{pre} would not tell them apart ({figures}): poses alone cannot separate "
+            "them here; where they differ in the conditions (temperature, time, session, "
+            "load), measure where those vary independently of each other"
+        )
+
+
+def _member_keys(st: Setup, member) -> list:
+    if isinstance(member, TermCandidate):
+        return list(member.keys)
+    return [k for k in st.names if k.startswith(f"{member}.")]
+
+
+def _canonical_correlation(cov: np.ndarray, a: list, b: list) -> float:
+    """Largest canonical correlation between parameter blocks a and b of covariance cov."""
+    Caa, Cbb, Cab = cov[np.ix_(a, a)], cov[np.ix_(b, b)], cov[np.ix_(a, b)]
+    La, Lb = np.linalg.cholesky(Caa), np.linalg.cholesky(Cbb)
+    M = np.linalg.solve(La, np.linalg.solve(Lb, Cab.T).T)
+    return float(np.clip(np.linalg.svd(M, compute_uv=False)[0], 0.0, 1.0))
+
+
+def discrimination_plan(
+    cal: Calibration,
+    st: Setup,
+    data: Measurements,
+    group: list,
+    n: int = 20,
+    *,
+    candidates: int = 1500,
+    seed: int = 0,
+) -> DiscriminationPlan:
+    """`n` commanded poses that best tell apart the members of an ambiguous `group`
+    (dictionary candidates and/or library effect names) fitted as `cal` (the final fit of
+    set-up `st` on `data`).
+
+    Ds-optimal augmentation of the run: the joint model holds every parameter `cal` frees
+    plus every member's coefficients; its information from `data` (the weighted Jacobian at
+    the fit) is the prior; the poses are chosen among `candidates` reachable poses, drawn in
+    the box of the data's commanded poses (widened by 20 %), to maximise the information on
+    the members' coefficients with everything else estimated alongside (log det F − log
+    det F_nn; greedy additions, then exchange passes — `poses.select`'s search). The plan
+    continues the last session (same tracker frame), at the temperature of the run's last
+    tenth, with the run's most frequent payload, each pose approached extending, σ per
+    column as in the data. A group whose members differ only in the conditions (a scale that
+    grows with temperature, or one that changes between sessions) is not separated by
+    poses: the result says so (`separates`)."""
     from .._api import actuator_command, reachable
+    from .._calibration.fit import _jacobian
+    from .._calibration.poses import _greedy_exchange
     from .._context import Context
 
+    keys = [_member_keys(st, m) for m in group]
+    index = {k: i for i, k in enumerate(st.names)}
+    interest = list(dict.fromkeys(k for ks in keys for k in ks))
+    free = [k for k in cal.names if k not in interest]
+    cols = [index[k] for k in free + interest]
+    P, nI = len(cols), len(interest)
+    J0 = np.asarray(cal.jacobian_full)[:, cols]
+    scale = np.linalg.norm(J0, axis=0)
+    scale[scale == 0] = 1.0
+
+    # candidate rows in the same parameterisation
     cmd = np.asarray(data.cmd_pose)
     centre, half = (cmd.max(0) + cmd.min(0)) / 2, 0.6 * np.ptp(cmd, axis=0) + 1e-9
     rng = np.random.default_rng(seed)
-    poses = centre + rng.uniform(-1, 1, (4000, 6)) * half
-    poses = poses[np.asarray(reachable(nominal, poses))]
-    temp = data.temperature
-    T = 20.0 if temp is None or not np.isfinite(temp).any() else float(np.nanmean(temp))
-    ctx = Context(1.0, T, 0.0, 0, 0.5)
-    s = np.asarray(actuator_command(nominal, poses, False)) - np.asarray(nominal.zero_lengths)
-    preds = []
-    for cand, coef in zip(group, coefficients):
-        eff = term_effect(cand, coef, len(data.sessions))
-        f = jax.vmap(lambda q, si: eff(nominal, q, si, ctx))(jnp.asarray(poses), jnp.asarray(s))
-        preds.append(np.asarray(f))
-    spread = np.max(np.ptp(np.stack(preds), axis=0), axis=1)  # (P,) mm
-    return poses[np.argsort(-spread)[:n]]
+    poses = centre + rng.uniform(-1, 1, (candidates, 6)) * half
+    poses = poses[np.asarray(reachable(st.problem.nominal, poses))]
+    m = len(poses)
+    ctx0 = st.problem.ctx
+    last = max(1, len(data) // 10)
+    session = int(np.asarray(ctx0.session)[-1])
+    T = float(np.mean(np.asarray(ctx0.temperature)[-last:]))
+    loads, counts = np.unique(np.asarray(ctx0.payload), return_counts=True)
+    payload = float(loads[np.argmax(counts)])
+    nominal = st.problem.nominal
+    s = np.asarray(actuator_command(nominal, poses, False, check=False)) - np.asarray(
+        nominal.zero_lengths
+    )
+    w = np.asarray(cal.weight)
+    wcol = np.array(
+        [np.median(w[st.mask[:, k], k]) if st.mask[:, k].any() else 0.0 for k in range(6)]
+    )
+    ctx = Context(
+        jnp.ones((m, 6)),
+        jnp.full(m, T),
+        jnp.full(m, payload),
+        jnp.full(m, session, dtype=jnp.int32),
+        jnp.ones(m),
+    )
+    problem = eqx.tree_at(
+        lambda p: (p.s, p.guess, p.measured, p.weight, p.session, p.ctx),
+        st.problem,
+        (
+            jnp.asarray(s),
+            jnp.asarray(poses),
+            jnp.zeros((m, 6)),
+            jnp.asarray(np.tile(wcol, (m, 1))),
+            jnp.full(m, session, dtype=jnp.int32),
+            ctx,
+        ),
+    )
+    measured = np.flatnonzero(wcol > 0)
+    Jc, _, solved = _jacobian(problem, st.layout, cal.theta)
+    keep = np.flatnonzero(np.asarray(solved))  # poses the forward solve reaches
+    poses = poses[keep]
+    G = (np.asarray(Jc).reshape(m, 6, -1)[keep][:, measured][:, :, cols] / scale).astype(float)
+    F0 = (J0 / scale).T @ (J0 / scale)
+    F0 = F0 + 1e-9 * np.trace(F0) / P * np.eye(P)
+    nuisance = tuple(range(P - nI))
+    order, _, _ = _greedy_exchange(
+        jnp.asarray(G), int(min(n, len(G))), jnp.asarray(F0), "Ds", 5, nuisance
+    )
+    order = np.asarray(order)
+    F1 = F0 + np.einsum("imr,ims->rs", G[order], G[order])
+
+    pos = {k: P - nI + i for i, k in enumerate(interest)}
+    first = [pos[k] for k in keys[0]]
+
+    def correlation(F):
+        cov = np.linalg.inv(F)
+        return max(
+            _canonical_correlation(cov, first, [pos[k] for k in ks if k not in keys[0]])
+            for ks in keys[1:]
+            if any(k not in keys[0] for k in ks)
+        )
+
+    def separation(rows):
+        """min over rivals of ‖(I − P_{free ∪ rival}) x‖², x the first member's signal."""
+        if not all(k in cal.names for k in keys[0]):
+            return float("nan")
+        c = np.array([cal.value[cal.names.index(k)] for k in keys[0]]) * scale[first]
+        x = rows[:, first] @ c
+        out = []
+        for ks in keys[1:]:
+            B = rows[:, list(range(P - nI)) + [pos[k] for k in ks if k not in keys[0]]]
+            r = x - B @ np.linalg.lstsq(B, x, rcond=1e-12)[0]
+            out.append(float(r @ r))
+        return min(out)
+
+    rows0 = J0 / scale
+    rows1 = np.concatenate([rows0, G[order].reshape(-1, P)])
+    return DiscriminationPlan(
+        poses=poses[order],
+        members=[m.label if isinstance(m, TermCandidate) else m for m in group],
+        correlation_before=correlation(F0),
+        correlation_after=correlation(F1),
+        separation_before=separation(rows0),
+        separation_after=separation(rows1),
+        context={"session": data.sessions[session], "temperature": T, "payload": payload},
+    )
 
 
 def compensation_gain(cal: Calibration, st: Setup, data: Measurements, cand, coef) -> dict:

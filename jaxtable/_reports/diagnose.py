@@ -199,21 +199,15 @@ def _dictionary_lines(diag: Diagnosis) -> list[str]:
             "would extrapolate wrongly outside it): " + ", ".join(f"`{t}`" for t in diag.absorbed),
             "",
         ]
-    plans = {id(f.candidate): f.plan for f in diag.discovered if f.plan}
-    for group in diag.ambiguous:
-        plan = plans.get(id(group[0]))
+    for i, group in enumerate(diag.ambiguous):
+        plan = diag.plans[i] if i < len(diag.plans) else None
         library = [g for g in group if isinstance(g, str)]
         lines.append(
             "Ambiguous: "
             + " / ".join(group_label(g) for g in group)
             + " explain the data almost equally"
-            + (f"; poses that tell them apart: `{plan}`" if plan else "")
-            + (
-                f"; {library[0]} is named (library effects keep priority): record data where "
-                "the two differ (e.g. temperature that does not follow time)"
-                if library
-                else ""
-            )
+            + (f"; plan `{plan['plan']}`: {plan['plan_words']}" if plan else "")
+            + (f"; {library[0]} is named (library effects keep priority)" if library else "")
             + "."
         )
     return lines
@@ -239,7 +233,15 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         + f" (neighbour-agreement test, false-alarm rate {diag.alpha:g}, independent of σ's "
         "scale; σ "
         + ("as stated" if diag.noise_mode == "fixed" else "estimated for each model")
-        + ").",
+        + ")."
+        + (
+            f" A Gaussian-process residual model (`jt.residual_gp`) gains "
+            f"{100 * diag.residual_model.gain:.1f} % on held-out rows; it depends most on: "
+            + "; ".join(diag.residual_model.hints()[:4])
+            + "."
+            if diag.residual_model is not None
+            else ""
+        ),
         "",
         *[f"- {line}" for line in (diag.final.noise.lines() if diag.final.noise else [])],
         "",
@@ -317,17 +319,24 @@ def write_report(diag: Diagnosis, out: Path, source: str, json_path: Path | None
     figures += effect_figures(diag, out)
     figures = [p for p in figures if p is not None]
     plans = []
-    for f in (f for f in diag.discovered if f.rivals):
-        poses = discrimination_plan(
-            diag.nominal,
-            diag.data,
-            [f.candidate] + f.rivals,
-            [f.coefficient] + f.rival_coefficients,
-        )
-        name = "plan_" + "_vs_".join(_slug(c.label) for c in [f.candidate] + f.rivals) + ".csv"
-        save_measurements(Measurements(poses, np.full_like(poses, np.nan)), out / name)
+    diag.plans = []
+    for group in diag.ambiguous:
+        plan = discrimination_plan(diag.final, diag.setup, diag.data, group)
+        name = "plan_" + "_vs_".join(_slug(group_label(c)) for c in group) + ".csv"
+        save_measurements(Measurements(plan.poses, np.full_like(plan.poses, np.nan)), out / name)
         plans.append(name)
-        f.plan = name
+        diag.plans.append(
+            {
+                "plan": name,
+                "plan_words": plan.words(),
+                "separates": plan.separates,
+                "correlation": [plan.correlation_before, plan.correlation_after],
+                "separation_delta_chi2": [plan.separation_before, plan.separation_after],
+            }
+        )
+        for f in diag.discovered:
+            if f.candidate is group[0]:
+                f.plan = name
     (out / "report.md").write_text(markdown(diag, figures, source))
     model_path = save_fitted_model(
         diag.fitted_model(),

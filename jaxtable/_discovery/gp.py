@@ -1,0 +1,291 @@
+"""A Gaussian-process residual model: how much of what a fitted model leaves could *any*
+smooth leg-length error explain on held-out rows? The ceiling a named finding is measured
+against, and a way to see structure without naming it.
+
+Model. Each reading's residual is the fitted model's linear part plus the reading's view of
+an unknown extra length g on every leg, plus noise:
+
+    e = J β + B g + ε,   ε ~ N(0, s² I)          (whitened: σ-normalised readings)
+
+J the fit's weighted Jacobian (free columns; β flat: the geometry, frames and effects are
+refitted with the GP, never fought by it), B the readings' response to leg lengths (the
+`zero_lengths` columns of the full Jacobian, row by row: an extra length on leg i at stop n
+moves stop n's readings by B_n[:, i]), and g a Gaussian process over (stop n, leg i),
+
+    cov(g_ni, g_mj) = K_shared((n, i), (m, j)) + δ_ij σ_i² K_leg((n, i), (m, i)),
+
+two additive kernels (sums of one-dimensional squared-exponential components, each with its
+weight; every feature has one length scale). The shared part is one function, the same for
+every leg, of the leg's own features: its extension s_i, its direction of travel d_i, and
+the stop's temperature T, time t (0..1 over the run), session index and payload; components:
+each feature alone, and s_i times each other one (a scale that depends on it). The per-leg
+part is a function for each leg (amplitude σ_i) of the same features and of every leg's
+extension s_1..s_6 (crosstalk): each alone, and s_i times each of d_i, T, t, session, payload.
+An additive kernel is what about a hundred stops can support: a full ARD product over eleven
+features fitted the noise and gained nothing on held-out rows. Features are standardised
+(extensions by their common spread, so legs compare); a component of a feature that does not
+vary in the data has weight zero.
+
+Hyper-parameters (weights, length scales, σ_i, s) maximise the restricted likelihood (REML:
+the likelihood of the residuals with J's coefficients integrated out, so the GP never takes
+what the geometry can do), with weak log-normal priors (length scales: median 1 standardised
+unit, log-sd 1; weights: median 1, log-sd 2) that keep flat directions finite, by BFGS
+(optimistix). They are fitted once on
+all rows; held-out predictions then refit β and condition g on the other folds' rows only
+(the GP predictor with explicit basis functions: generalised least squares for β, kriging of
+what is left). Fitting the hyper-parameters on every row makes the held-out gain a slight
+overestimate: a ceiling, as intended.
+"""
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._calibration.fit import Calibration, Setup
+from .._calibration.heldout import make_folds
+from .._calibration.noise import fit_basis
+
+ROW = ("temperature", "time", "session", "payload")  # features of the stop, not the leg
+SHARED = (
+    ("own extension s_i", "direction d_i")
+    + ROW
+    + tuple(f"s_i × {f}" for f in ("direction d_i",) + ROW)
+)
+PER_LEG = (
+    tuple(f"extension s_{j}" for j in range(1, 7))
+    + ("direction d_i",)
+    + ROW
+    + tuple(f"s_i × {f}" for f in ("direction d_i",) + ROW)
+)
+LOG_ELL_SD = 1.0  # prior log-sd of a length scale (median 1 standardised unit)
+LOG_W_SD = 2.0  # prior log-sd of a component weight (median 1)
+
+
+@dataclass(frozen=True)
+class ResidualGP:
+    """Outcome of `residual_gp`.
+
+    - `heldout_rms_model`, `heldout_rms_gp`: k-fold held-out RMS of the σ-normalised
+      residuals (the fit's σ) of the fitted model, and of the model plus the GP;
+      `gain` = 1 − gp / model (0: nothing smooth left; the ceiling of what a named term can
+      gain on these folds);
+    - `components`: {"shared: <component>" or "leg i: <component>": variance} the prior
+      variance of each additive component of g (σ² of the readings per unit response),
+      largest first: what the residuals depend on;
+    - `noise`: s (1.0: the residuals' noise is the fit's σ); `log_evidence`: the restricted
+      log likelihood at the optimum (priors included); `converged`; `folds`, `grouped`.
+    """
+
+    heldout_rms_model: float
+    heldout_rms_gp: float
+    gain: float
+    components: dict
+    noise: float
+    log_evidence: float
+    converged: bool
+    folds: int
+    grouped: bool
+
+    def hints(self, share: float = 0.1) -> list[str]:
+        """The components whose variance is at least `share` of the largest, largest first."""
+        top = max(self.components.values(), default=0.0)
+        return [k for k, v in self.components.items() if top > 0 and v >= share * top]
+
+
+def _features(st: Setup):
+    """Standardised features: own extension s (N, 6), direction d (N, 6), row features
+    R (N, 4) (temperature, time, session, payload), and which vary: (own s, d, R...) (6,)."""
+    problem = st.problem
+    ctx = problem.ctx
+    s = np.asarray(problem.s, float)
+    d = np.asarray(ctx.direction, float)
+    R = np.stack([np.asarray(getattr(ctx, k), float) for k in ROW], axis=1)
+
+    def z(x, axis=None):
+        sd = np.std(x, axis=axis)
+        return (x - np.mean(x, axis=axis)) / np.where(sd > 1e-9, sd, 1.0), sd > 1e-9
+
+    s_z, s_v = z(s)
+    R_z, R_v = z(R, axis=0)
+    vary = np.concatenate([[s_v, np.std(d) > 1e-9], R_v])
+    return s_z, d, R_z, vary
+
+
+def _se(x, y, ell):
+    """Squared-exponential kernel of 1-D features: x (..., M), y (..., M') -> (..., M, M')."""
+    r = (x[..., :, None] - y[..., None, :]) / ell
+    return jnp.exp(-0.5 * r * r)
+
+
+def _latent_cov(h, s, d, R, vary):
+    """(N, 6, N, 6) prior covariance of the leg-length errors g for log hyper-parameters h.
+
+    s, d (N, 6): own extension and direction; R (N, 4): row features; vary (6,) 0/1."""
+    n = s.shape[0]
+    ell_o, ell_a = jnp.exp(h["ell_own"]), jnp.exp(h["ell_all"])
+    v_R = vary[2:]
+    w_sh = jnp.exp(2.0 * h["w_shared"]) * jnp.concatenate([vary[:2], v_R, vary[1:2], v_R])
+    w_lg = jnp.exp(2.0 * h["w_legs"]) * jnp.concatenate(
+        [jnp.full(6, vary[0]), vary[1:2], v_R, vary[1:2], v_R]
+    )
+    # row kernels (4, N, N) with the own length scales (shared part) and the per-leg ones
+    kR_o = _se(R.T, R.T, ell_o[2:, None, None])
+    kR_a = _se(R.T, R.T, ell_a[7:, None, None])
+    # shared part over (n, i) pairs
+    sf, df = s.reshape(-1), d.reshape(-1)
+    ks = _se(sf, sf, ell_o[0])
+    kd = _se(df, df, ell_o[1])
+    row_alone = jnp.einsum("f,fnm->nm", w_sh[2:6], kR_o)
+    row_times_s = jnp.einsum("f,fnm->nm", w_sh[7:11], kR_o)
+
+    def rows(k):  # (N, N) -> (N·6, N·6): the same for every pair of legs
+        return jnp.broadcast_to(k[:, None, :, None], (n, 6, n, 6)).reshape(n * 6, n * 6)
+
+    K = (
+        w_sh[0] * ks + w_sh[1] * kd + rows(row_alone) + ks * (w_sh[6] * kd + rows(row_times_s))
+    ).reshape(n, 6, n, 6)
+    # per-leg part: (6, N, N), leg i with leg i only
+    kS = _se(s.T, s.T, ell_a[:6, None, None])  # the legs' extensions, row features
+    kS_all = jnp.einsum("j,jnm->nm", w_lg[:6], kS)
+    kd_leg = _se(d.T, d.T, ell_a[6])
+    ks_leg = _se(s.T, s.T, ell_o[0])
+    K_leg = (
+        kS_all[None]
+        + w_lg[6] * kd_leg
+        + jnp.einsum("f,fnm->nm", w_lg[7:11], kR_a)[None]
+        + ks_leg * (w_lg[11] * kd_leg + jnp.einsum("f,fnm->nm", w_lg[12:16], kR_a)[None])
+    )
+    K_leg = K_leg * jnp.exp(2.0 * h["legs"])[:, None, None]
+    return K + jnp.einsum("inm,ij->nimj", K_leg, jnp.eye(6))
+
+
+def _reading_cov(h, A, s, d, R, vary, obs):
+    """(n_obs, n_obs) covariance B K Bᵀ of the readings' GP part: B is block diagonal (one
+    (6 readings × 6 legs) block `A` per stop), so it is applied block by block."""
+    n = A.shape[0]
+    K = _latent_cov(h, s, d, R, vary)
+    T = jnp.einsum("nai,nimj->namj", A, K)
+    C = jnp.einsum("namj,mbj->namb", T, A).reshape(n * 6, n * 6)
+    return C[obs][:, obs]
+
+
+def _neg_log_posterior(h, args):
+    """REML negative log likelihood (+ the weak priors) of residuals y with basis U."""
+    y, U, A, s, d, R, vary, obs = args
+    C = _reading_cov(h, A, s, d, R, vary, obs) + jnp.exp(2.0 * h["noise"]) * jnp.eye(len(y))
+    L = jnp.linalg.cholesky(C)
+    a = jax.scipy.linalg.solve_triangular(L, y, lower=True)
+    V = jax.scipy.linalg.solve_triangular(L, U, lower=True)
+    Lg = jnp.linalg.cholesky(V.T @ V)
+    b = jax.scipy.linalg.solve_triangular(Lg, V.T @ a, lower=True)
+    nll = 0.5 * (a @ a - b @ b) + jnp.sum(jnp.log(jnp.diag(L))) + jnp.sum(jnp.log(jnp.diag(Lg)))
+    prior = 0.5 * (jnp.sum(h["ell_own"] ** 2) + jnp.sum(h["ell_all"] ** 2)) / LOG_ELL_SD**2
+    prior += 0.5 * (jnp.sum(h["w_shared"] ** 2) + jnp.sum(h["w_legs"] ** 2)) / LOG_W_SD**2
+    return nll + prior
+
+
+@eqx.filter_jit
+def _fit_hyper(h0, args, max_steps):
+    solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+    sol = optx.minimise(_neg_log_posterior, solver, h0, args, max_steps=max_steps, throw=False)
+    return sol.value, _neg_log_posterior(sol.value, args), sol.result == optx.RESULTS.successful
+
+
+@eqx.filter_jit
+def _conditional(h, A, s, d, R, vary, obs, t, f, U, y):
+    """GP-with-basis prediction of the readings `f` from the readings `t` (indices into the
+    measured readings `obs`): generalised least squares for the basis, kriging of the rest."""
+    Call = _reading_cov(h, A, s, d, R, vary, obs)
+    U_T, U_F, y_T = U[t], U[f], y[t]
+    C = Call[t][:, t] + jnp.exp(2.0 * h["noise"]) * jnp.eye(len(t))
+    L = jnp.linalg.cholesky(C)
+    Lu = jax.scipy.linalg.solve_triangular(L, U_T, lower=True)
+    Ly = jax.scipy.linalg.solve_triangular(L, y_T, lower=True)
+    beta = jnp.linalg.lstsq(Lu, Ly, rcond=1e-10)[0]
+    w = jax.scipy.linalg.cho_solve((L, True), y_T - U_T @ beta)
+    return U_F @ beta + Call[f][:, t] @ w
+
+
+def residual_gp(
+    cal: Calibration,
+    st: Setup,
+    *,
+    folds: int = 5,
+    grouped: bool = True,
+    seed: int = 0,
+    max_steps: int = 500,
+    tol: float = 1e-6,
+) -> ResidualGP:
+    """Fit the GP residual model (module docstring) to the residuals of fit `cal` of set-up
+    `st` (`diagnose`'s `Diagnosis.base` / `.final` and `.setup`, or `setup` + `fit`), and
+    score it on `folds` held-out folds (`grouped`: contiguous stretches of the run, as the
+    discovery dictionary's gains are scored; else rows dealt at random)."""
+    if cal.jacobian_full is None or cal.residual is None:
+        raise ValueError("residual_gp needs a fit with its full Jacobian (diagnose's, or fit())")
+    mask = np.asarray(st.mask, bool)
+    n = mask.shape[0]
+    if n < 2 * folds:
+        raise ValueError(f"residual_gp needs at least {2 * folds} rows for {folds} folds; got {n}")
+    obs = np.flatnonzero(mask.reshape(-1))
+    y = np.asarray(cal.residual, float).reshape(-1)[obs]
+    U = fit_basis(np.asarray(cal.jacobian, float)[obs], tol)
+    zl = [st.names.index(f"zero_lengths[{i}]") for i in range(1, 7)]
+    A = np.asarray(cal.jacobian_full, float)[:, zl].reshape(n, 6, 6)  # (row, reading, leg)
+    A = A / float(np.sqrt(np.sum(A**2) / max(len(obs), 1)))  # g in σ per unit response
+    s, d, R, vary = _features(st)
+
+    # REML: the likelihood of the residuals with the fit's coefficients integrated out
+    s0 = float(np.sqrt(np.sum(y**2) / max(len(y) - U.shape[1], 1)))
+    h0 = {
+        "w_shared": jnp.full(len(SHARED), jnp.log(0.1 * s0)),
+        "w_legs": jnp.full(len(PER_LEG), jnp.log(0.1)),
+        "legs": jnp.full(6, jnp.log(s0)),
+        "ell_own": jnp.zeros(6),
+        "ell_all": jnp.zeros(11),
+        "noise": jnp.log(s0),
+    }
+    args = tuple(jnp.asarray(a) for a in (y, U, A, s, d, R, vary.astype(float), obs))
+    h, nlp, ok = _fit_hyper(h0, args, max_steps)
+    h = jax.tree.map(np.asarray, h)
+
+    rows = make_folds(n, folds, seed, grouped=grouped)
+    pos = np.full(n * 6, -1)
+    pos[obs] = np.arange(len(obs))
+    sq_m = sq_g = 0.0
+    count = 0
+    noise = float(np.exp(h["noise"]))
+    for r in rows:
+        f = pos[(r[:, None] * 6 + np.arange(6)).reshape(-1)]
+        f = f[f >= 0]
+        t = np.setdiff1d(np.arange(len(obs)), f)
+        beta = np.linalg.lstsq(U[t], y[t], rcond=1e-10)[0]
+        sq_m += float(np.sum((y[f] - U[f] @ beta) ** 2))
+        pred = _conditional(h, *args[2:], t, f, U, y)
+        sq_g += float(np.sum((y[f] - np.asarray(pred)) ** 2))
+        count += len(f)
+    rms_m, rms_g = np.sqrt(sq_m / count), np.sqrt(sq_g / count)
+    v_sh = np.concatenate([vary[:2], vary[2:], vary[1:2], vary[2:]])
+    v_lg = np.concatenate([np.full(6, vary[0]), vary[1:2], vary[2:], vary[1:2], vary[2:]])
+    comp = {
+        f"shared: {k}": float(np.exp(2 * w)) for k, w, v in zip(SHARED, h["w_shared"], v_sh) if v
+    }
+    for i, sl in enumerate(np.exp(2 * h["legs"])):
+        for k, w, v in zip(PER_LEG, h["w_legs"], v_lg):
+            if v:
+                comp[f"leg {i + 1}: {k}"] = float(sl * np.exp(2 * w))
+    components = dict(sorted(comp.items(), key=lambda kv: -kv[1]))
+    return ResidualGP(
+        heldout_rms_model=float(rms_m),
+        heldout_rms_gp=float(rms_g),
+        gain=float(1.0 - rms_g / rms_m),
+        components=components,
+        noise=noise,
+        log_evidence=float(-nlp),
+        converged=bool(ok),
+        folds=folds,
+        grouped=grouped,
+    )
