@@ -20,10 +20,13 @@ noise-only runs. On every run:
 Target (issue 13): ≥ 90 % of the GP's held-out gain with ≤ 2 parameters per finding.
 
 Run:  python studies/discovery_baselines.py [--quick] [--seeds N] [--out DIR]
-      (writes discovery_baselines.md and discovery_baselines.png into DIR, default results/)
+      (writes discovery_baselines.md, .png and .json (every run's figures) into DIR, default
+      results/; 20 min on 2 cores; `--from-json results/discovery_baselines.json` rewrites
+      the report from the saved runs)
 """
 
 import argparse
+import json
 import re
 import time
 from pathlib import Path
@@ -195,9 +198,32 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, default=6, help="runs per planted effect")
     ap.add_argument("--null", type=int, default=12, help="noise-only runs")
     ap.add_argument("--out", type=Path, default=RESULTS, help="output folder (default results/)")
+    ap.add_argument(
+        "--from-json",
+        type=Path,
+        help="write the report from a saved discovery_baselines.json (no runs)",
+    )
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    if args.from_json:
+        saved = json.loads(args.from_json.read_text())
+        rows, null, run_time = saved["planted"], saved["noise_only"], saved["run_time_s"]
+    else:
+        rows, null = compute(args, t0)
+        run_time = time.perf_counter() - t0
+        (args.out / "discovery_baselines.json").write_text(
+            json.dumps(
+                {"planted": rows, "noise_only": null, "run_time_s": run_time},
+                indent=1,
+                default=float,
+            )
+        )
+    report(rows, null, run_time, args.out)
+
+
+def compute(args, t0):
+    """Every run: {label: [run figures]} for the planted effects, [run figures] on noise."""
     nominal = nominal_table()
     labels = ["s^2 on leg 3", "backlash"] if args.quick else list(PLANTED)
     seeds = 1 if args.quick else args.seeds
@@ -214,6 +240,12 @@ def main(argv=None):
         print(f"{label}: {time.perf_counter() - t0:.0f} s", flush=True)
     null = [one(nominal, None, 0.0, 500 + s) for s in range(n_null)]
     print(f"noise only: {time.perf_counter() - t0:.0f} s", flush=True)
+    return rows, null
+
+
+def report(rows, null, run_time, out):
+    seeds = len(next(iter(rows.values())))
+    n_null = len(null)
 
     def mean(rs, k):
         return float(np.mean([r[k] for r in rs]))
@@ -234,9 +266,10 @@ def main(argv=None):
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     ratios, params_ok = {}, {}
+    gp_noise = max(mean(null, "gp_gain"), 0.0)  # what the GP gains on noise alone
     for label, rs in rows.items():
         g, gp = mean(rs, "gain"), mean(rs, "gp_gain")
-        ratios[label] = g / gp if gp > 0.005 else float("nan")
+        ratios[label] = g / gp if gp > max(2 * gp_noise, 0.005) else float("nan")
         params_ok[label] = mean(rs, "params")
         hints = sorted({r["gp_hint"] for r in rs})
         lines.append(
@@ -255,22 +288,35 @@ def main(argv=None):
         f"{100 * mean(null, 'gp_gain'):.1f} % | – | – | – |"
     )
     ok = [k for k, r in ratios.items() if r >= 0.9 and params_ok[k] <= 2.0]
-    terms = [k for k in rows if k not in jt.EFFECTS]
-    ok_terms = [k for k in ok if k in terms]
     measured = [k for k, r in ratios.items() if not np.isnan(r)]
+    terms = [k for k in measured if k not in jt.EFFECTS]
+    ok_terms = [k for k in ok if k in terms]
+    weak = [
+        f"{k} (diagnose {100 * mean(rows[k], 'gain'):.1f} %, GP "
+        f"{100 * mean(rows[k], 'gp_gain'):.1f} %)"
+        for k in rows
+        if k not in measured
+    ]
     low = [f"{k} ({100 * ratios[k]:.0f} %)" for k in measured if ratios[k] < 0.9]
     lines += [
         "",
         "Gains are means over the runs; diagnose / GP is the ratio of the means (– where the GP "
-        "gains under 0.5 %: nothing to compare). Parameters per finding: free parameters the "
-        "final model adds over the base fit, per effect or term it names.",
+        f"gains less than twice what it gains on noise alone, {100 * gp_noise:.1f} %: nothing "
+        "to compare). Parameters per finding: free parameters the final model adds over the "
+        "base fit, per effect or term it names.",
         "",
         "## Conclusions",
         "",
         f"- Target (≥ 90 % of the GP's held-out gain with ≤ 2 parameters per finding): met by "
-        f"{len(ok_terms)} of {len(terms)} dictionary terms ({', '.join(ok_terms) or 'none'}) "
-        f"and {len(ok) - len(ok_terms)} of {len(rows) - len(terms)} library effects (library "
-        "effects carry one parameter per leg by design).",
+        f"{len(ok_terms)} of the {len(terms)} dictionary terms the GP gains on "
+        f"({', '.join(ok_terms) or 'none'}) and {len(ok) - len(ok_terms)} of the "
+        f"{len(measured) - len(terms)} library effects (library effects carry one parameter "
+        "per leg by design)."
+        + (
+            f" Too weak to compare (the GP gains under twice its noise): {'; '.join(weak)}."
+            if weak
+            else ""
+        ),
         f"- diagnose over the GP, median over the {len(measured)} planted effects the GP "
         f"gains on: {100 * np.nanmedian([ratios[k] for k in measured]):.0f} %"
         + (f"; below 90 %: {', '.join(low)}." if low else "."),
@@ -282,15 +328,22 @@ def main(argv=None):
         f"{sum(r['lasso_wrong'] > 0 for r in null)} of {len(null)} runs "
         f"(diagnose: {sum(r['named'] for r in null)}): cross-validation chooses λ for "
         "prediction, not for a false-discovery rate.",
-        f"- On noise alone the GP gains {100 * mean(null, 'gp_gain'):.1f} % on average: its "
-        "ceiling is not inflated by fitting noise.",
+        f"- On noise alone the GP gains {100 * mean(null, 'gp_gain'):.1f} % on average "
+        f"(diagnose {100 * mean(null, 'gain'):.1f} %, LASSO-CV "
+        f"{100 * mean(null, 'lasso_gain'):.1f} %): its hyper-parameters are fitted on every "
+        "row, so its ceiling sits about that much high, which makes the ratios above "
+        "conservative for diagnose.",
+        "- The GP is no ceiling where the effect is not smooth on the scale ~100 stops "
+        "resolve: "
+        + (", ".join(f"{k} ({100 * r:.0f} %)" for k, r in ratios.items() if r > 2) or "none")
+        + " — a named form extrapolates where a flexible model cannot.",
         "",
-        f"Run time {time.perf_counter() - t0:.0f} s.",
+        f"Run time {run_time:.0f} s.",
     ]
-    figure(rows, null, args.out / "discovery_baselines.png")
-    (args.out / "discovery_baselines.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines[-9:]))
-    print(f"wrote {args.out / 'discovery_baselines.md'}")
+    figure(rows, null, out / "discovery_baselines.png")
+    (out / "discovery_baselines.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines[-10:]))
+    print(f"wrote {out / 'discovery_baselines.md'}")
 
 
 def figure(rows, null, path):
