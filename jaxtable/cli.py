@@ -251,7 +251,8 @@ def _diagnose(args) -> int:
         print(
             "ambiguous: "
             + " / ".join(group_label(c) for c in group)
-            + f"; {plan['plan']}: {plan['plan_words']}"
+            + (f"; {plan['plan']}: " if plan["plan"] else "; ")
+            + plan["plan_words"]
         )
     if diag.structure is not None:
         print(diag.structure.words())

@@ -141,6 +141,11 @@ ADDED = [
     "enable_compilation_cache",
     "parse_sigma",
     "structure_test",
+    # a flexible residual model, and plans that tell ambiguous findings apart
+    "DiscriminationPlan",
+    "ResidualGP",
+    "discrimination_plan",
+    "residual_gp",
 ]
 
 

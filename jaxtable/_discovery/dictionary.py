@@ -438,6 +438,11 @@ def discrimination_plan(
     poses = centre + rng.uniform(-1, 1, (candidates, 6)) * half
     poses = poses[np.asarray(reachable(st.problem.nominal, poses))]
     m = len(poses)
+    if m == 0:
+        raise ValueError(
+            "no reachable pose among the candidates drawn in the box of the data's commanded "
+            "poses: no plan"
+        )
     ctx0 = st.problem.ctx
     last = max(1, len(data) // 10)
     session = int(np.asarray(ctx0.session)[-1])

@@ -206,7 +206,11 @@ def _dictionary_lines(diag: Diagnosis) -> list[str]:
             "Ambiguous: "
             + " / ".join(group_label(g) for g in group)
             + " explain the data almost equally"
-            + (f"; plan `{plan['plan']}`: {plan['plan_words']}" if plan else "")
+            + (
+                f"; plan `{plan['plan']}`: {plan['plan_words']}"
+                if plan and plan["plan"]
+                else (f"; {plan['plan_words']}" if plan else "")
+            )
             + (f"; {library[0]} is named (library effects keep priority)" if library else "")
             + "."
         )
@@ -321,7 +325,11 @@ def write_report(diag: Diagnosis, out: Path, source: str, json_path: Path | None
     plans = []
     diag.plans = []
     for group in diag.ambiguous:
-        plan = discrimination_plan(diag.final, diag.setup, diag.data, group)
+        try:
+            plan = discrimination_plan(diag.final, diag.setup, diag.data, group)
+        except ValueError as e:  # nothing reachable to choose from
+            diag.plans.append({"plan": None, "plan_words": str(e), "separates": False})
+            continue
         name = "plan_" + "_vs_".join(_slug(group_label(c)) for c in group) + ".csv"
         save_measurements(Measurements(plan.poses, np.full_like(plan.poses, np.nan)), out / name)
         plans.append(name)
