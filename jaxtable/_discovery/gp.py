@@ -173,6 +173,9 @@ def _reading_cov(h, A, s, d, R, vary, obs):
     return C[obs][:, obs]
 
 
+_reading_cov_jit = eqx.filter_jit(_reading_cov)
+
+
 def _neg_log_posterior(h, args):
     """REML negative log likelihood (+ the weak priors) of residuals y with basis U."""
     y, U, A, s, d, R, vary, obs = args
@@ -196,12 +199,12 @@ def _fit_hyper(h0, args, max_steps):
 
 
 @eqx.filter_jit
-def _conditional(h, A, s, d, R, vary, obs, t, f, U, y):
+def _conditional(Call, noise, t, f, U, y):
     """GP-with-basis prediction of the readings `f` from the readings `t` (indices into the
-    measured readings `obs`): generalised least squares for the basis, kriging of the rest."""
-    Call = _reading_cov(h, A, s, d, R, vary, obs)
+    measured readings), given the GP part's covariance `Call` of all measured readings and
+    the noise s: generalised least squares for the basis, kriging of the rest."""
     U_T, U_F, y_T = U[t], U[f], y[t]
-    C = Call[t][:, t] + jnp.exp(2.0 * h["noise"]) * jnp.eye(len(t))
+    C = Call[t][:, t] + noise**2 * jnp.eye(len(t))
     L = jnp.linalg.cholesky(C)
     Lu = jax.scipy.linalg.solve_triangular(L, U_T, lower=True)
     Ly = jax.scipy.linalg.solve_triangular(L, y_T, lower=True)
@@ -258,13 +261,14 @@ def residual_gp(
     sq_m = sq_g = 0.0
     count = 0
     noise = float(np.exp(h["noise"]))
+    Call = _reading_cov_jit(h, *args[2:])  # the GP part's covariance, shared by every fold
     for r in rows:
         f = pos[(r[:, None] * 6 + np.arange(6)).reshape(-1)]
         f = f[f >= 0]
         t = np.setdiff1d(np.arange(len(obs)), f)
         beta = np.linalg.lstsq(U[t], y[t], rcond=1e-10)[0]
         sq_m += float(np.sum((y[f] - U[f] @ beta) ** 2))
-        pred = _conditional(h, *args[2:], t, f, U, y)
+        pred = _conditional(Call, noise, t, f, U, y)
         sq_g += float(np.sum((y[f] - np.asarray(pred)) ** 2))
         count += len(f)
     rms_m, rms_g = np.sqrt(sq_m / count), np.sqrt(sq_g / count)
