@@ -19,6 +19,12 @@ magnitude and `prior` the range a fit or a simulation should stay in, each with 
 | thermal | α_i (T − 20 °C) L0_i | alpha (6,) 1/K |
 | compliance | F_i(q)/k_i, F = axial force (tension +), static equilibrium | flex = 1/k (6,) mm/N |
 | rehoming | c_i,session (first session 0) | offsets (S−1, 6) mm |
+
+`spiral`, `thermal` and `compliance` have a shared form (`shared_fields`): six identical
+cylinders share one screw (signed lead: one lead, one hand), one expansion coefficient and
+one stiffness, and a fit may tie them (`thermal[all]`, one parameter instead of six). The
+other per-leg fields are each cylinder's own: its screw's lead error, periodic error and lost
+motion, its homing.
 """
 
 from collections.abc import Mapping
@@ -47,10 +53,14 @@ class AbstractEffect(eqx.Module):
     """Base class. Class variables: `name` (the stable string), `fields` (fitted parameter
     fields), `depends_on_extension` (True if the extra length depends on s, so the inverse
     kinematics needs a per-leg Newton solve), `needs` (data the effect needs: "temperature",
-    "session", "mass"), `typical` and `prior` (field -> magnitude / (lo, hi), with `source`)."""
+    "session", "mass"), `typical` and `prior` (field -> magnitude / (lo, hi), with `source`),
+    `shared_fields` (per-leg fields that six identical cylinders share — one material, one
+    design — so that a fit may tie them to one number for all legs: the effect's shared form,
+    `_params.effect_forms`)."""
 
     name: ClassVar[str] = ""
     fields: ClassVar[tuple] = ()
+    shared_fields: ClassVar[tuple] = ()
     depends_on_extension: ClassVar[bool] = False
     needs: ClassVar[tuple] = ()
     typical: ClassVar[dict] = {}
@@ -78,6 +88,7 @@ class Spiral(AbstractEffect):
     lead: Float[ArrayLike, "6"]
     name: ClassVar[str] = "spiral"
     fields: ClassVar[tuple] = ("lead",)
+    shared_fields: ClassVar[tuple] = ("lead",)  # one screw type
     typical: ClassVar[dict] = {"lead": 12.7}
     prior: ClassVar[dict] = {"lead": (-50.0, 50.0)}
     source: ClassVar[str] = (
@@ -171,6 +182,7 @@ class Thermal(AbstractEffect):
     alpha: Float[ArrayLike, "6"]
     name: ClassVar[str] = "thermal"
     fields: ClassVar[tuple] = ("alpha",)
+    shared_fields: ClassVar[tuple] = ("alpha",)  # one material
     needs: ClassVar[tuple] = ("temperature",)
     typical: ClassVar[dict] = {"alpha": 11.5e-6}
     prior: ClassVar[dict] = {"alpha": (-3e-5, 3e-5)}
@@ -206,6 +218,7 @@ class Compliance(AbstractEffect):
     flex: Float[ArrayLike, "6"]
     name: ClassVar[str] = "compliance"
     fields: ClassVar[tuple] = ("flex",)
+    shared_fields: ClassVar[tuple] = ("flex",)  # one cylinder design
     needs: ClassVar[tuple] = ("mass",)
     typical: ClassVar[dict] = {"flex": 1 / 2.0e4}
     prior: ClassVar[dict] = {"flex": (0.0, 1e-3)}

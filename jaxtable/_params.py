@@ -4,7 +4,11 @@ replaced, and how their elements are named in reports.
 
 A parameter name is either a table leaf (`"base_joints"`, `"zero_lengths"`, `"lead"`, ...) or
 `"effect.field"` for a field of an effect in the model (`"spiral.lead"`,
-`"lead_scale.eps"`). Element names are of two kinds:
+`"lead_scale.eps"`). A per-leg field of an effect that identical cylinders share (the
+effect's `shared_fields`: one expansion coefficient, one stiffness) may also be fitted as one
+number for all six legs, `"effect.field[all]"` (`"thermal.alpha[all]"`): one scalar step
+added to every leg's value (the model still holds six values, all moved together). Element
+names are of two kinds:
 
 - keys (stable, for code, JSON and lookups): `zero_lengths[3]`, `base_joints[2].y`,
   `spiral.lead[1]`, and for joint sets fitted modulo rigid motions (the gauge, see
@@ -71,23 +75,90 @@ _LEAF_LABEL = {
 }
 
 
+SHARED = "[all]"
+"""Suffix of a parameter fitted as one number for all legs (`thermal.alpha[all]`), and of an
+effect's shared form (`thermal[all]`: the effect with its `shared_fields` tied)."""
+
+
+def is_shared(name: str) -> bool:
+    """Whether a parameter name (or an effect form) is the one-number-for-all-legs form."""
+    return name.endswith(SHARED)
+
+
+def leaf(name: str) -> str:
+    """The model leaf a parameter name moves: `thermal.alpha[all]` -> `thermal.alpha`."""
+    return name[: -len(SHARED)] if is_shared(name) else name
+
+
 def split(name: str) -> tuple[str | None, str]:
-    """`"effect.field"` -> (effect, field); a table leaf -> (None, leaf)."""
-    effect, dot, field = name.partition(".")
-    return (effect, field) if dot else (None, name)
+    """`"effect.field"` -> (effect, field); a table leaf -> (None, leaf); a shared parameter
+    `"effect.field[all]"` -> (effect, field)."""
+    effect, dot, field = leaf(name).partition(".")
+    return (effect, field) if dot else (None, leaf(name))
 
 
-def effect_parameters(effect: str) -> tuple[str, ...]:
-    """The parameter names of a library effect: `("spiral.lead",)`, `("periodic_lead.a",
-    "periodic_lead.b")`, ..."""
-    return tuple(f"{effect}.{f}" for f in MODEL_EFFECTS[effect].fields)
+def form_effect(form: str) -> str:
+    """The effect of a form: `thermal[all]` -> `thermal`, `thermal` -> `thermal`."""
+    return leaf(form)
 
 
-def check(table, effects, names) -> None:
+def effect_forms(effect: str) -> tuple[str, ...]:
+    """The forms an effect can be fitted in: its per-leg form (`"thermal"`) and, when it has
+    `shared_fields`, its shared form (`"thermal[all]"`: those fields one number for all
+    legs, its other fields per leg)."""
+    shared = MODEL_EFFECTS[effect].shared_fields
+    return (effect, effect + SHARED) if shared else (effect,)
+
+
+def effect_parameters(form: str) -> tuple[str, ...]:
+    """The parameter names of a library effect form: `("spiral.lead",)`, `("periodic_lead.a",
+    "periodic_lead.b")`, ...; a shared form's shared fields with the suffix
+    (`"thermal[all]"` -> `("thermal.alpha[all]",)`)."""
+    effect = form_effect(form)
+    cls = MODEL_EFFECTS[effect]
+    tied = cls.shared_fields if is_shared(form) else ()
+    return tuple(f"{effect}.{f}" + (SHARED if f in tied else "") for f in cls.fields)
+
+
+def form_keys(keys, form: str) -> list[str]:
+    """The element keys, among `keys`, of an effect form's parameters: `thermal[all]` ->
+    `["thermal.alpha[all]"]`, `thermal` -> `["thermal.alpha[1]", ..., "thermal.alpha[6]"]`."""
+    names = effect_parameters(form)
+    return [k for k in keys if k in names or (not is_shared(k) and k.partition("[")[0] in names)]
+
+
+def with_form(model, form: str) -> list:
+    """The model (a list of effect forms) with `form` in it, in place of another form of the
+    same effect (a shared form upgraded to per leg)."""
+    effect = form_effect(form)
+    return [m for m in model if form_effect(m) != effect] + [form]
+
+
+def form_label(form: str) -> str:
+    """A person's name for an effect form: `thermal[all]` -> `thermal (one alpha for all
+    legs)`; a per-leg form is its name."""
+    if not is_shared(form):
+        return form
+    effect = form_effect(form)
+    fields = ", ".join(MODEL_EFFECTS[effect].shared_fields)
+    return f"{effect} (one {fields} for all legs)"
+
+
+def check(table, effects, names, *, allow_shared: bool = False) -> None:
     """Raise ValueError naming any entry of `names` that is not a parameter of the model
-    (`effects`: a mapping name -> effect Module)."""
+    (`effects`: a mapping name -> effect Module). Shared parameters (`thermal.alpha[all]`)
+    only where `allow_shared` (fits; a sensitivity is per element)."""
     for name in names:
         effect, field = split(name)
+        if is_shared(name) and not allow_shared:
+            raise ValueError(f"parameter '{name}': a shared parameter can only be fitted")
+        if is_shared(name):
+            cls = type(effects.get(effect)) if effect is not None else None
+            if effect is None or field not in getattr(cls, "shared_fields", ()):
+                raise ValueError(
+                    f"parameter '{name}': only an effect's shared fields can be fitted as one "
+                    f"number for all legs (e.g. thermal.alpha[all], compliance.flex[all])"
+                )
         if effect is not None:
             if effect not in effects:
                 raise ValueError(
@@ -106,7 +177,8 @@ def check(table, effects, names) -> None:
 
 
 def get(table, effects, name: str):
-    """The array of parameter `name` in the model (table, effects)."""
+    """The array of parameter `name` in the model (table, effects); a shared parameter
+    (`thermal.alpha[all]`) -> the per-leg leaf it moves."""
     effect, field = split(name)
     return getattr(table if effect is None else effects[effect], field)
 
@@ -137,7 +209,8 @@ def element_keys(name: str, shape: tuple) -> list[str]:
 def label(key: str) -> str:
     """A person's name for an element key: `base_joints[2].y` -> `base joint 2 y`,
     `zero_lengths[3]` -> `leg 3 zero length L0`, `spiral.lead[1]` -> `spiral lead, leg 1`,
-    `frame[2].yaw` -> `instrument frame (session 2) yaw`, `target.z` -> `target offset z`.
+    `frame[2].yaw` -> `instrument frame (session 2) yaw`, `target.z` -> `target offset z`,
+    `thermal.alpha[all]` -> `thermal alpha, all legs`.
     Gauge coordinates (`base_joints.g7`) need their basis: see `gauge_label`."""
     head, bracket, rest = key.partition("[")
     index, _, comp = rest.partition("]")
@@ -157,6 +230,8 @@ def label(key: str) -> str:
     base = f"{effect.replace('_', ' ')} {field}"
     if not bracket:
         return base
+    if index == "all":
+        return f"{base}, all legs"
     if comp.isdigit():  # (rows, 6) fields: one row per later session (rehoming offsets)
         return f"{base}, session {int(index) + 1}, leg {comp}"
     return f"{base}, leg {index}" + (f" {comp}" if comp else "")

@@ -10,7 +10,7 @@ from ._analysis.workspaces import WorkspaceFileError
 from ._cache import enable_compilation_cache
 from ._calibration.measurements import DataFileError
 from ._errors import KinematicsError, TableFileError
-from ._params import GEOMETRY
+from ._params import GEOMETRY, form_label
 
 
 def _table(path):
@@ -239,7 +239,7 @@ def _diagnose(args) -> int:
         raise UsageError(f"{source}: {e}") from None
     paths = write_report(diag, out, source, json_path)
     print(
-        f"selected: {', '.join(diag.selected) or 'none'}; unexplained: "
+        f"selected: {', '.join(map(form_label, diag.selected_forms)) or 'none'}; unexplained: "
         f"{str(diag.unexplained).lower()}; RMS {diag.rms_before:.3f} -> {diag.rms_after:.3f} "
         f"sigma, held-out {diag.heldout_rms_before:.3f} -> {diag.heldout_rms_after:.3f} sigma"
     )

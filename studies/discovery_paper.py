@@ -137,7 +137,11 @@ def part1(nominal, true, lines, size, out):
                 if first
                 else f"selects the spiral term (ranked {rank} in the first step)"
             )
-            + "; per-leg signed lead recovered as "
+            + (
+                "; one signed lead for all legs (the shared form) recovered as "
+                if len(v) == 1
+                else "; per-leg signed lead recovered as "
+            )
             + ", ".join(f"{a:+.3f}±{b:.3f}" for a, b in zip(v, s))
             + f" mm/rev: hand {hand}, weighted mean lead {mean:.4f} ± {se:.4f} mm/rev "
             f"(hardware {hw_lead.mean():g} mm/rev, {'/'.join(sorted(hw_hand))} hand: hand "

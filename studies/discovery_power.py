@@ -97,7 +97,7 @@ def first_name(diag):
         if step.added.startswith("term "):
             return "term", diag.discovered[0].candidate
         if step.added:
-            return "library", step.added
+            return "library", step.added_effect
     return None
 
 
@@ -204,7 +204,11 @@ def main(argv=None):
             diag = jt.diagnose(nominal, data, log=lambda _: None, compensated=False)
             first = first_name(diag)
             hits += named_right(first, label, truth)
-            names.append("nothing" if first is None else str(first[1]))
+            amb = diag.as_json()["ambiguous"]
+            names.append(
+                ("nothing" if first is None else str(first[1]))
+                + (f" [ambiguous: {'; '.join(' / '.join(g) for g in amb)}]" if amb else "")
+            )
         k = ref.labels.index(label)
         check_rows.append((label, ref.correct[k, k_target], hits, checks, names))
         print(f"check {label}: {hits}/{checks} ({time.perf_counter() - t0:.0f} s)", flush=True)
@@ -260,7 +264,12 @@ def main(argv=None):
             right, wrong = p.correct[k, k_target], p.wrong[k, k_target]
             meets[t].append(right >= 0.95 and wrong <= 0.01)
             w = p.wrong_names[k][k_target]
-            cells.append(f"{100 * right:.1f} % / {100 * wrong:.1f} %" + (f" ({w})" if w else ""))
+            flag = p.flagged[k, k_target]
+            cells.append(
+                f"{100 * right:.1f} % / {100 * wrong:.1f} %"
+                + (f" ({w})" if w else "")
+                + (f"; {100 * flag:.1f} % reported ambiguous with the truth" if flag else "")
+            )
         lines.append(
             f"| {label} | {ref.coefficient_at(label, TARGET):.3g} | " + " | ".join(cells) + " |"
         )
@@ -268,7 +277,11 @@ def main(argv=None):
         "",
         "Coefficients in the effect's own units (`spiral`: mm/rev of lead; `lead_scale`, "
         "`d*s`, `s[j]`, `session*s`: mm/mm; `backlash`, `t`, `periodic_lead`, `rehoming`: mm; "
-        "`thermal`, `T*s`: 1/K; `compliance`: mm/N; `s^2`: 1/mm; `s^3`: 1/mm²).",
+        "`thermal`, `T*s`: 1/K; `compliance`: mm/N; `s^2`: 1/mm; `s^3`: 1/mm²). `spiral`, "
+        "`thermal` and `compliance` compete in both forms (per leg, and one coefficient for "
+        'all legs); either names the effect. "Reported ambiguous with the truth": a wrong '
+        "library name that the report pairs with the planted term as a finding the data "
+        "cannot tell apart (with a plan to separate them).",
         "",
         "## Noise alone",
         "",
@@ -309,6 +322,11 @@ def main(argv=None):
             + (
                 f", mostly named {ref.wrong_names[k][k_target]}"
                 if ref.wrong_names[k][k_target]
+                else ""
+            )
+            + (
+                f" (reported ambiguous with the truth in {100 * ref.flagged[k, k_target]:.0f} %)"
+                if ref.flagged[k, k_target] >= 0.005
                 else ""
             )
             for k, lab in enumerate(ref.labels)

@@ -345,6 +345,10 @@ def test_diagnose_cli_on_the_bundled_example(tmp_path, capsys):
     for c in doc["candidates"]:
         assert {"effect", "delta_bic", "heldout_gain", "params"} <= set(c)
     assert len(doc["steps"]) == 3 and doc["steps"][0]["added"] == "spiral"
+    # the example's six cylinders have one screw: the shared form, one lead for all legs
+    assert doc["selected_forms"] == ["spiral[all]", "backlash"]
+    assert doc["steps"][0]["added_form"] == "spiral[all]"
+    assert {c["form"] for c in doc["candidates"]} >= {"spiral", "spiral[all]", "backlash"}
     text = (out / "report.md").read_text()
     assert "spiral" in text and (out / "residual_signatures.png").exists()
     assert (out / "effect_backlash.png").exists()

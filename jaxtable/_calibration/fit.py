@@ -124,7 +124,8 @@ def build_model(problem: Problem, layout: Layout, theta):
         step = theta[name]
         if name in params.JOINTS:
             step = (problem.bases[name] @ step).reshape(6, 3)
-        changes[name] = params.get(table, effects, name) + step
+        leaf = params.leaf(name)  # a shared parameter's scalar step moves every leg's value
+        changes[leaf] = changes.get(leaf, params.get(table, effects, leaf)) + step
     table, effects = params.replace(table, effects, changes)
     frame = (
         jnp.zeros((layout.n_sessions, 6)).at[:, np.array(layout.frame_dofs)].set(theta["frame"])
@@ -467,6 +468,8 @@ def zero_steps(nominal: Table, effects: dict, free, bases: dict) -> dict:
     return {
         name: jnp.zeros(bases[name].shape[1])
         if name in params.JOINTS
+        else jnp.zeros(())
+        if params.is_shared(name)
         else jnp.zeros_like(params.get(nominal, effects, name))
         for name in free
     }
@@ -691,7 +694,7 @@ def setup(
         n: (complement_basis(np.asarray(getattr(nominal, n))) if n in gauge else np.eye(18))
         for n in JOINTS
     }
-    params.check(nominal, eff, free)
+    params.check(nominal, eff, free, allow_shared=True)
     noise = noise_model(data.measured, data.sigma, sigma)
     problem = make_problem(
         nominal, data, eff, bases, compensated, used_columns(eff, free), noise.sigma0
@@ -912,8 +915,9 @@ def calibrate(
     method: str = "gauss_newton",
 ) -> "Calibration":
     """Fit the `free` parameters (table leaves: base_joints, platform_joints, zero_lengths,
-    ...; effect fields: "spiral.lead", ...) of the model `nominal` + `effects` (default: its
-    hardware effects) to `data`.
+    ...; effect fields: "spiral.lead", ...; a shared field as one number for all legs:
+    "thermal.alpha[all]") of the model `nominal` + `effects` (default: its hardware
+    effects) to `data`.
 
     Commanded lengths come from the data, or (absent) from the nominal inverse kinematics,
     compensated for the spiral term when `compensated` (which must then be stated when the

@@ -88,7 +88,9 @@ def applicable(name: str, nominal: Table, data: Measurements) -> tuple[bool, str
 @dataclass
 class Candidate:
     """Score of one effect added to a model: ΔBIC, k-fold held-out gain and RMS, fitted
-    parameters (field -> (value, std) arrays)."""
+    parameters (field -> (value, std) arrays). `effect` holds the form fitted (`thermal`, or
+    `thermal[all]` for one coefficient shared by all legs; the JSON's `effect` is the effect
+    name and `form` the form)."""
 
     effect: str
     delta_bic: float
@@ -102,7 +104,8 @@ class Candidate:
 
     def as_json(self) -> dict:
         return {
-            "effect": self.effect,
+            "effect": params.form_effect(self.effect),
+            "form": self.effect,  # the effect, or `thermal[all]`: one coefficient for all legs
             "delta_bic": self.delta_bic,
             "heldout_gain": self.heldout_gain,
             "heldout_rms": self.heldout_rms,
@@ -133,6 +136,14 @@ class Step:
     screening: object = None  # the dictionary's Screening of this fit (None: not screened)
     terms: list = field(default_factory=list)  # the TermCandidates it screened
 
+    @property
+    def added_effect(self) -> str | None:
+        """The library effect the step added (its name, in whichever form: `added` holds the
+        form, e.g. `thermal[all]`); None for a dictionary term or no addition."""
+        if not self.added or self.added.startswith("term "):
+            return None
+        return params.form_effect(self.added)
+
     def as_json(self) -> dict:
         return {
             "model": self.model,
@@ -148,7 +159,8 @@ class Step:
             if self.screening is None
             else _screening_json(self.screening, self.terms),
             "decision": self.decision,
-            "added": self.added,
+            "added": self.added if self.added_effect is None else self.added_effect,
+            "added_form": self.added,
         }
 
 
@@ -191,12 +203,14 @@ class Finding:
 
 def _name(item) -> str:
     """A member of an ambiguous group by its stable name: the term string or the effect."""
-    return item.term if isinstance(item, TermCandidate) else item
+    return item.term if isinstance(item, TermCandidate) else params.form_effect(item)
 
 
 def group_label(item) -> str:
     """A member of an ambiguous group: a dictionary candidate, or a library effect name."""
-    return item.label if isinstance(item, TermCandidate) else f"{item} (library effect)"
+    if isinstance(item, TermCandidate):
+        return item.label
+    return f"{params.form_label(item)} (library effect)"
 
 
 def _screening_json(scr, terms: list, top: int = 10) -> dict:
@@ -237,7 +251,7 @@ class Diagnosis:
     names `rms_before` / `rms_after`) and `rms_columns_before` / `rms_columns_after` (per
     measured column, mm / rad); `heldout_rms_*` are σ-normalised."""
 
-    selected: list
+    selected: list  # library effect names
     unexplained: bool
     steps: list
     base: Calibration
@@ -249,6 +263,9 @@ class Diagnosis:
     not_applicable: dict
     alpha: float
     model_effects: list = field(default_factory=list)  # base + selected: the final model
+    # the forms the selected effects were fitted in: the name, or `thermal[all]` for one
+    # coefficient shared by all legs (`_params.effect_forms`)
+    selected_forms: list = field(default_factory=list)
     noise_mode: str = "estimate"  # "estimate": σ estimated per model; "fixed": stated σ
     structure: StructureTest | None = None  # the final model's structure test
     discovered: list = field(default_factory=list)  # Finding per dictionary term found
@@ -298,12 +315,14 @@ class Diagnosis:
         return self.steps[0].candidates if self.steps else []
 
     def effect_params(self, name: str) -> dict:
-        """Fitted parameters of a selected effect: field -> (value, std)."""
+        """Fitted parameters of a selected effect: field -> (value, std); one value for a
+        field its shared form ties (`selected_forms`)."""
         return {f: self.final.parameter(f"{name}.{f}") for f in EFFECTS[name].fields}
 
     def as_json(self) -> dict:
         return {
             "selected": list(self.selected),
+            "selected_forms": list(self.selected_forms),
             "discovered": [f.as_json() for f in self.discovered],
             "absorbed": list(self.absorbed),
             "ambiguous": [[_name(c) for c in group] for group in self.ambiguous],
@@ -352,6 +371,11 @@ class Diagnosis:
         }
 
 
+def _effects_of(model: list, base) -> list:
+    """The library effects a model (a list of effect forms) selected beyond `base`."""
+    return [params.form_effect(m) for m in model if m not in base and m != "discovered"]
+
+
 def _norm_rms(cal: Calibration, rows: np.ndarray, mask: np.ndarray) -> float:
     r = cal.residual[rows][mask[rows]]
     return float(np.sqrt(np.mean(r**2)))
@@ -364,7 +388,14 @@ def discovery_setup(
     dictionary's `discovered` included) at its null value, all of them with θ entries, so
     that nested models and folds are masks of one compiled program."""
     effects = {name: cls.null(len(data.sessions)) for name, cls in MODEL_EFFECTS.items()}
-    free_all = GEOMETRY + tuple(f for n in MODEL_EFFECTS for f in params.effect_parameters(n))
+    free_all = GEOMETRY + tuple(
+        dict.fromkeys(
+            f
+            for n in MODEL_EFFECTS
+            for form in params.effect_forms(n)
+            for f in params.effect_parameters(form)
+        )
+    )
     return setup(nominal, data, free_all, effects=effects, compensated=compensated, sigma=sigma)
 
 
@@ -448,7 +479,14 @@ def diagnose(
         ok, why = applicable(name, nominal, data)
         if not ok:
             not_applicable[name] = why
-    pool = [n for n in library if n not in not_applicable and n not in base]
+    # every form of every applicable effect: thermal and compliance also with one
+    # coefficient for all six (identical) cylinders; ΔBIC decides between the forms
+    pool = [
+        form
+        for n in library
+        if n not in not_applicable and n not in base
+        for form in params.effect_forms(n)
+    ]
 
     index = {k: i for i, k in enumerate(st.names)}
     term_keys: list = []  # parameter keys of the dictionary terms found so far
@@ -456,7 +494,9 @@ def diagnose(
     def free_mask(model, keys=None):
         """Geometry, the model's library effects, and the dictionary terms found (`keys`,
         default those found so far): "discovered" frees only its found elements."""
-        blocks = tuple(f for n in model if n != "discovered" for f in params.effect_parameters(n))
+        blocks = tuple(
+            f for form in model if form != "discovered" for f in params.effect_parameters(form)
+        )
         fm = st.free_mask(GEOMETRY + blocks)
         for k in term_keys if keys is None else keys:
             fm[index[k]] = 1.0
@@ -497,11 +537,19 @@ def diagnose(
         )
         cands = []
         for name in pool:
-            if name in model:
+            # a form already in, or a shared form where the per-leg one is in: not a step
+            # (a shared form in the model is offered its per-leg form, in its place)
+            if name in model or (params.is_shared(name) and params.form_effect(name) in model):
                 continue
-            cal = fit(st, free_mask(model + [name]), noise="fixed", weight=current.weight)
+            cal = fit(
+                st,
+                free_mask(params.with_form(model, name)),
+                noise="fixed",
+                weight=current.weight,
+            )
             dbic = (cal.chi2 - current.chi2) + (cal.rank - current.rank) * math.log(cal.n_obs)
-            fitted = {f: cal.parameter(f"{name}.{f}") for f in EFFECTS[name].fields}
+            effect = params.form_effect(name)
+            fitted = {f: cal.parameter(f"{effect}.{f}") for f in EFFECTS[effect].fields}
             cands.append(Candidate(name, float(dbic), None, None, cal.chi2, cal.rank, fitted, cal))
         cands.sort(key=lambda c: c.delta_bic)
         strong = [c for c in cands if c.delta_bic < -bic_threshold]
@@ -518,8 +566,9 @@ def diagnose(
                 f"{100 * c.heldout_gain:+6.1f} %  explains {100 * c.share:5.0f} % of the excess"
             )
         paying = [c for c in strong if c.heldout_gain > min_gain and c.share >= min_share]
-        if len([m for m in model if m not in base and m != "discovered"]) >= max_effects:
-            paying = []
+        if len(_effects_of(model, base)) >= max_effects:
+            have = [params.form_effect(m) for m in model]
+            paying = [c for c in paying if params.form_effect(c.effect) in have]  # upgrades
         # the dictionary, screened against the same fit
         scr, term = None, None
         live = [c for c in dict_cands if not set(c.keys) & set(term_keys)]
@@ -578,7 +627,7 @@ def diagnose(
             t_left = screen(lib.fit, st, [cand], draws=0).score[0] > scr.threshold
             both = fit(
                 st,
-                free_mask(model + [lib.effect], term_keys + list(cand.keys)),
+                free_mask(params.with_form(model, lib.effect), term_keys + list(cand.keys)),
                 noise="fixed",
                 weight=trial.weight,
                 theta0=trial.theta,
@@ -652,8 +701,8 @@ def diagnose(
         best = lib
         step.added = best.effect
         step.decision = f"add {best.effect}"
-        log(f"  -> add {best.effect}")
-        model.append(best.effect)
+        log(f"  -> add {params.form_label(best.effect)}")
+        model = params.with_form(model, best.effect)
         current = best.fit if stated else fit_model(model, theta0=best.fit.theta)
         heldout_current = best.heldout_rms
     final = current
@@ -674,13 +723,14 @@ def diagnose(
             f"strongest: {'; '.join(residual_model.hints()[:3])}"
         )
     return Diagnosis(
-        selected=[m for m in model if m not in base and m != "discovered"],
+        selected=_effects_of(model, base),
+        selected_forms=[m for m in model if params.form_effect(m) in _effects_of(model, base)],
         discovered=found,
         absorbed=absorbed,
         ambiguous=ambiguous,
         screenings=screenings,
         discovery_alpha=discovery_alpha,
-        model_effects=list(model),
+        model_effects=[params.form_effect(m) for m in model],
         noise_mode=noise,
         structure=final_structure,
         unexplained=final_structure.structure,

@@ -34,6 +34,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _params as params
 from .._calibration.fit import Calibration, Setup
 from .._calibration.measurements import Measurements
 from .._calibration.noise import fit_basis
@@ -380,7 +381,7 @@ class DiscriminationPlan:
 def _member_keys(st: Setup, member) -> list:
     if isinstance(member, TermCandidate):
         return list(member.keys)
-    return [k for k in st.names if k.startswith(f"{member}.")]
+    return params.form_keys(st.names, member)
 
 
 def _canonical_correlation(cov: np.ndarray, a: list, b: list) -> float:
@@ -518,7 +519,7 @@ def discrimination_plan(
     rows1 = np.concatenate([rows0, G[order].reshape(-1, P)])
     return DiscriminationPlan(
         poses=poses[order],
-        members=[m.label if isinstance(m, TermCandidate) else m for m in group],
+        members=[m.label if isinstance(m, TermCandidate) else params.form_label(m) for m in group],
         correlation_before=correlation(F0),
         correlation_after=correlation(F1),
         separation_before=separation(rows0),

@@ -21,7 +21,10 @@ the first round's rules to them:
   terms excluded;
 - when both are accepted the library effect is named, unless the term still beats the
   threshold on top of it and the library effect adds nothing (ΔBIC) on top of the term
-  (`diagnose`'s priority rule, evaluated on the pair's joint basis).
+  (`diagnose`'s priority rule, evaluated on the pair's joint basis); when neither adds to
+  the other, the library effect is named and the pair reported ambiguous (`flagged`);
+- a library effect with a shared form (`spiral`, `thermal`, `compliance`: one coefficient for
+  all legs) competes in both forms; either names the effect.
 
 Not modelled here: the held-out gain checks (`min_gain`, the term's grouped-fold gain), which
 on data of this size bind only at amplitudes where the Δχ² rules already fail, and later
@@ -56,6 +59,9 @@ class Power:
     - `correct`, `wrong` (L, A): fraction of trials naming the planted effect first /
       naming something else first (the rest name nothing);
     - `wrong_names` (L, A): the most frequent wrong name ("" if none);
+    - `flagged` (L, A): fraction of trials naming a library effect wrongly but reporting the
+      planted term as ambiguous with it (part of `wrong`: the report offers the truth and a
+      plan to tell them apart);
     - `false_discovery`: fraction of noise-only trials naming anything;
       `false_library`, `false_term`: the same split by kind;
     - `visible` (L,): ‖(I − U Uᵀ) x̂‖ for the planted signal x̂ of unit peak: what the base
@@ -79,6 +85,7 @@ class Power:
     n_obs: int
     visible: np.ndarray
     scale: np.ndarray = field(repr=False)
+    flagged: np.ndarray | None = None
 
     def amplitude_at(self, label: str, level: float = 0.9) -> float:
         """The smallest amplitude (peak signal / σ) at which `label` is named with probability
@@ -105,7 +112,7 @@ def _planted_step(st, planted: dict) -> tuple[np.ndarray, list]:
     steps = {}
     for name in st.layout.free:
         effect, _ = params.split(name)
-        if effect is None or effect not in planted:
+        if effect is None or effect not in planted or params.is_shared(name):
             steps[name] = jax.numpy.zeros_like(st.theta0[name])
             continue
         new = np.asarray(params.get(st.problem.nominal, effects, name), float)
@@ -156,7 +163,8 @@ def detection_power(
         raise ValueError("amplitudes must be a 1-D list of values >= 0 (peak signal / σ)")
     library = list(EFFECTS) if library is None else list(library)
     st = discovery_setup(nominal, data, compensated=compensated)
-    libs = [n for n in library if applicable(n, nominal, data)[0]]
+    effects_ok = [n for n in library if applicable(n, nominal, data)[0]]
+    libs = [form for n in effects_ok for form in params.effect_forms(n)]  # the forms compete
     dict_c = candidates(st, data)
     labels = list(planted)
     truth, steps = [], []
@@ -179,7 +187,7 @@ def detection_power(
             name = next(iter(mods))
             if len(mods) > 1:
                 raise ValueError(f"planted '{label}' must be one effect")
-            if name not in libs:
+            if name not in effects_ok:
                 why = applicable(name, nominal, data)[1] or "not in the library searched"
                 raise ValueError(f"planted '{label}': these data cannot name {name} ({why})")
             truth.append(name)
@@ -195,7 +203,7 @@ def detection_power(
     n_obs = int(w.mask.sum())
     pen = math.log(max(n_obs, 2))
 
-    lib_cols = [[i for k, i in index.items() if k.startswith(f"{n}.")] for n in libs]
+    lib_cols = [[index[k] for k in params.form_keys(st.names, form)] for form in libs]
     lib_b = Bases.of(Jf, w.U, lib_cols)
     dict_b = Bases.of(Jf, w.U, [[index[k] for k in c.keys] for c in dict_c])
     k_lib = lib_b.rank * pen
@@ -206,8 +214,10 @@ def detection_power(
     excess = 3.0 * math.sqrt(2.0 * max(w.dof, 1.0))
     names = libs + [c.label for c in dict_c]
 
-    def decide(res: np.ndarray) -> np.ndarray:
-        """(b,) index into `names` of the first name for residuals `res` (b, M); −1: none."""
+    def decide(res: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(b,) index into `names` of the first name for residuals `res` (b, M), −1: none;
+        and (b,) the dictionary candidate reported ambiguous with a named library effect
+        (index into the dictionary, −1: none)."""
         dl = lib_b.delta_chi2(res, w.dof)
         pl = dl - k_lib
         ok_l = (pl > bic_threshold) & (dl >= min_share * excess)
@@ -219,6 +229,7 @@ def detection_power(
         any_d = np.take_along_axis(np.where(live, sd, -np.inf), best_d[:, None], 1)[:, 0]
         any_d = any_d > threshold
         out = np.where(any_l, best_l, np.where(any_d, len(libs) + best_d, -1))
+        amb = np.full(len(out), -1)
         both = np.flatnonzero(any_l & any_d)
         pairs = {(int(best_l[i]), int(best_d[i])) for i in both}
         for li, di in pairs:  # few distinct pairs: the priority rule on their joint basis
@@ -234,7 +245,8 @@ def detection_power(
             t_left = (pLD - pL) / sL - k_dict[di] > threshold
             l_left = (pLD - pD) / sD - lib_b.rank[li] * pen > bic_threshold
             out[rows] = np.where(t_left & ~l_left, len(libs) + di, li)
-        return out
+            amb[rows] = np.where(~t_left & ~l_left, di, -1)
+        return out, amb
 
     shapes, scale = [], []
     for label, flat in zip(labels, steps):
@@ -246,8 +258,9 @@ def detection_power(
         scale.append(peak)
 
     def correct_name(named: np.ndarray, t: str) -> np.ndarray:
-        if t in libs:
-            return named == libs.index(t)
+        if t in effects_ok:  # either form names the effect
+            forms = [i for i, f in enumerate(libs) if params.form_effect(f) == t]
+            return np.isin(named, forms)
         want = dict_c[[c.label for c in dict_c].index(t)]
         ok = np.array(
             [c.family == want.family and set(want.legs) <= set(c.legs) for c in dict_c] + [False]
@@ -257,24 +270,31 @@ def detection_power(
     A = len(amplitudes)
     correct = np.zeros((len(labels), A))
     wrong = np.zeros((len(labels), A))
+    flagged = np.zeros((len(labels), A))
     wrong_names = [["" for _ in range(A)] for _ in labels]
     null_named = []
     for zz in w.null_draws(trials, seed + 2, batch=chunk):
-        null_named.append(decide(zz.reshape(len(zz), -1)))
+        null_named.append(decide(zz.reshape(len(zz), -1))[0])
     null_named = np.concatenate(null_named)
     for li, x in enumerate(shapes):
         xp = x - w.U @ (w.U.T @ x)
         for ai, a in enumerate(amplitudes):
-            named = np.concatenate(
-                [
-                    decide(a * xp + zz.reshape(len(zz), -1))
-                    for zz in w.null_draws(trials, seed + 3 + ai, batch=chunk)
-                ]
+            named, amb = (
+                np.concatenate(parts)
+                for parts in zip(
+                    *(
+                        decide(a * xp + zz.reshape(len(zz), -1))
+                        for zz in w.null_draws(trials, seed + 3 + ai, batch=chunk)
+                    )
+                )
             )
             ok = correct_name(named, truth[li])
             bad = (named >= 0) & ~ok
             correct[li, ai] = ok.mean()
             wrong[li, ai] = bad.mean()
+            if truth[li] not in effects_ok:  # a term: was it offered as the ambiguous rival?
+                offered = correct_name(np.where(amb >= 0, len(libs) + amb, -1), truth[li])
+                flagged[li, ai] = (bad & offered).mean()
             if bad.any():
                 vals, counts = np.unique(named[bad], return_counts=True)
                 wrong_names[li][ai] = names[int(vals[np.argmax(counts)])]
@@ -293,4 +313,5 @@ def detection_power(
         n_obs,
         np.asarray([np.linalg.norm(x - w.U @ (w.U.T @ x)) for x in shapes]),
         np.asarray(scale),
+        flagged,
     )

@@ -106,7 +106,7 @@ def _signature_of(added: str, sig: dict) -> tuple[str, np.ndarray]:
     """(name, (N, 6) values) of the variable a step's addition responds to: a library
     effect's signature, or a dictionary term's ("term s[5] on leg 2": leg 5's extension)."""
     if not added.startswith("term "):
-        key = SIGNATURE_OF[added]
+        key = SIGNATURE_OF[vocab.form_effect(added)]
         return key, sig[key]
     term = added.split()[1]
     if term.startswith("s["):
@@ -143,7 +143,9 @@ def effect_figures(diag: Diagnosis, out: Path) -> list[Path]:
             ax.set_xlabel(key)
             ax.set_title(title, fontsize=9)
         axes[0].set_ylabel("leg residual (µm)")
-        fig.suptitle(f"{step.added}: leg residuals against its signature, before and after")
+        fig.suptitle(
+            f"{vocab.form_label(step.added)}: leg residuals against its signature, before and after"
+        )
         fig.tight_layout()
         p = out / f"effect_{_slug(step.added)}.png"
         fig.savefig(p, dpi=110)
@@ -226,7 +228,9 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         "joints modulo the rigid motions the instrument frame absorbs) + instrument frame per "
         "session and target offset.",
         "",
-        f"**Selected effects:** {', '.join(diag.selected) if diag.selected else 'none'}. "
+        "**Selected effects:** "
+        + (", ".join(map(vocab.form_label, diag.selected_forms)) or "none")
+        + ". "
         + (
             "**Discovered terms:** " + "; ".join(f.candidate.label for f in diag.discovered) + ". "
             if diag.discovered
@@ -277,7 +281,8 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         ]
         for c in step.candidates:
             lines.append(
-                f"| {c.effect} | {c.delta_bic:.1f} | {100 * c.heldout_gain:+.1f} % | "
+                f"| {vocab.form_label(c.effect)} | {c.delta_bic:.1f} | "
+                f"{100 * c.heldout_gain:+.1f} % | "
                 f"{100 * c.share:.0f} % | {_fmt_params(c.params)} |"
             )
         lines.append("")
@@ -290,8 +295,8 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         ]
     if diag.selected:
         lines += ["## Fitted effect parameters (final model, ±1σ)", ""]
-        for name in diag.selected:
-            lines.append(f"- **{name}**: {_fmt_params(diag.effect_params(name))}")
+        for name, form in zip(diag.selected, diag.selected_forms):
+            lines.append(f"- **{vocab.form_label(form)}**: {_fmt_params(diag.effect_params(name))}")
             lines.append(f"  (prior source: {EFFECTS[name].source})")
         lines.append("")
     lines += ["## Figures", ""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
