@@ -560,7 +560,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument(
         "--free",
         default=",".join(GEOMETRY),
-        help="comma-separated free parameters (table leaves or effect.field, e.g. spiral.lead)",
+        help="comma-separated free parameters (table leaves or effect.field, e.g. spiral.lead; "
+        "spiral.lead[all]: one value for all legs)",
     )
     sp.add_argument(
         "--no-frame",

@@ -144,6 +144,7 @@ def detection_power(
     min_share: float = 0.3,
     draws: int = 2000,
     chunk: int = 500,
+    noise: str = "auto",
 ) -> Power:
     """Probability that `diagnose`'s first round names each planted effect, against its
     amplitude, for the plan and instrument of `data` (module docstring).
@@ -155,7 +156,14 @@ def detection_power(
     term (`{"discovered": Discovered(s2=[0, 0, 1, 0, 0, 0])}`: it must be exactly one
     dictionary candidate); the module sets the shape, `amplitudes` (peak signal / σ) the
     size; `trials` per amplitude (also the noise-only trials); `draws`: Monte Carlo draws of
-    the dictionary threshold; other arguments as in `diagnose`."""
+    the dictionary threshold; `noise`: the σ the trials' noise has — "stated" (the data's σ
+    columns, or the default σ where a file has none), "estimate" (each group's σ as the plan
+    run's residuals show it: for σ stated wrong; one run's estimate is itself uncertain,
+    ±6 % at 500 degrees of freedom, and biases every probability with it) or "auto"
+    (default: stated where the data state σ, else estimated); other arguments as in
+    `diagnose`."""
+    if noise not in ("auto", "stated", "estimate"):
+        raise ValueError(f"noise must be 'auto', 'stated' or 'estimate'; got {noise!r}")
     if trials < 1:
         raise ValueError(f"trials must be >= 1; got {trials}")
     amplitudes = np.asarray(amplitudes, float)
@@ -193,10 +201,12 @@ def detection_power(
             truth.append(name)
         steps.append(flat)
 
-    # weights 1/σ as stated (amplitudes are in these units); the whitening then rescales the
-    # noise groups to what the fit's residuals show (VCE), as the screening does
+    # weights 1/σ as stated (amplitudes are in these units); with `noise` "estimate" the
+    # whitening rescales the noise groups to what the plan run's residuals show (VCE), as the
+    # screening does on data
     base = fit(st, st.free_mask(params.GEOMETRY), noise="fixed")
-    w = whitened(base, st)
+    stated = data.sigma is not None and bool(np.isfinite(np.asarray(data.sigma)).any())
+    w = whitened(base, st, vce=noise == "estimate" or (noise == "auto" and not stated))
     J_stated = np.asarray(base.jacobian_full)
     Jf = J_stated * w.factor.reshape(-1, 1)
     index = {k: i for i, k in enumerate(st.names)}

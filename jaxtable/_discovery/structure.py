@@ -159,8 +159,9 @@ class Whitened:
             yield (z - (z @ self.U) @ self.U.T).reshape(b, n, 6)
 
 
-def whitened(cal: Calibration, st: Setup, tol: float = 1e-6) -> Whitened:
-    """`Whitened` of fit `cal` of set-up `st`."""
+def whitened(cal: Calibration, st: Setup, tol: float = 1e-6, vce: bool = True) -> Whitened:
+    """`Whitened` of fit `cal` of set-up `st`; `vce=False`: the fit's weights as they are
+    (σ as stated), without rescaling the noise groups to what the residuals show."""
     mask = np.asarray(st.mask) & (np.asarray(cal.weight) > 0)
     rows = np.flatnonzero(mask.any(axis=1))
     J = np.asarray(cal.jacobian)
@@ -169,6 +170,8 @@ def whitened(cal: Calibration, st: Setup, tol: float = 1e-6) -> Whitened:
     groups = np.asarray(st.noise.groups) if st.noise is not None else np.where(mask, 0, -1)
     red = redundancy(J, tol)
     scale, _ = group_scales(cal.residual, red, groups, mask)
+    if not vce:
+        scale = np.ones_like(scale)
     factor = np.where(mask, 1.0 / scale[np.maximum(groups, 0)], 0.0)
     e = np.where(mask, np.asarray(cal.residual), 0.0) * factor
     U = fit_basis(J * factor.reshape(-1, 1), tol)  # (N·6, r) orthonormal
