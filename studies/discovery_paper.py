@@ -127,7 +127,7 @@ def part1(nominal, true, lines, size, out):
         mean = float((lead * w).sum() / w.sum())
         se = float(1 / np.sqrt(w.sum()))
         z = (mean - float(hw_lead.mean())) / se
-        ranked = [c.effect for c in t_run.candidates]
+        ranked = [c.as_json()["effect"] for c in t_run.candidates]  # effect names, any form
         first = bool(ranked) and ranked[0] == "spiral"
         rank = ranked.index("spiral") + 1 if "spiral" in ranked else "?"
         lines += [
