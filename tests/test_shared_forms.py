@@ -40,6 +40,16 @@ def _run(effects, seed, n=N):
     return nominal, data
 
 
+def _calibrate_thermal(nominal, data, free):
+    return jt.calibrate(
+        nominal,
+        data,
+        params.GEOMETRY + (free,),
+        effects={"thermal": jt.Thermal()},
+        compensated=False,
+    )
+
+
 def test_names_of_the_shared_forms():
     assert params.effect_forms("thermal") == ("thermal", "thermal[all]")
     assert params.effect_forms("compliance") == ("compliance", "compliance[all]")
@@ -88,25 +98,13 @@ def test_shared_thermal_fit_recovers_the_common_coefficient():
     z = []
     for seed in range(8):
         nominal, data = _run({"thermal": jt.Thermal(alpha)}, 10 + seed)
-        cal = jt.calibrate(
-            nominal,
-            data,
-            params.GEOMETRY + ("thermal.alpha[all]",),
-            effects={"thermal": jt.Thermal()},
-            compensated=False,
-        )
+        cal = _calibrate_thermal(nominal, data, "thermal.alpha[all]")
         v, s = cal.parameter("thermal.alpha")
         assert v.shape == (1,) and np.all(np.isfinite(s))
         np.testing.assert_array_equal(np.asarray(cal.effects["thermal"].alpha), np.full(6, v[0]))
         z.append((v[0] - alpha) / s[0])
         if seed == 0:
-            per_leg = jt.calibrate(
-                nominal,
-                data,
-                params.GEOMETRY + ("thermal.alpha",),
-                effects={"thermal": jt.Thermal()},
-                compensated=False,
-            )
+            per_leg = _calibrate_thermal(nominal, data, "thermal.alpha")
             assert s[0] < per_leg.parameter("thermal.alpha")[1].min()
     z = np.asarray(z)
     assert np.all(np.abs(z) < 3.5), z

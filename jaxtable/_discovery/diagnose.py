@@ -371,9 +371,9 @@ class Diagnosis:
         }
 
 
-def _effects_of(model: list, base) -> list:
-    """The library effects a model (a list of effect forms) selected beyond `base`."""
-    return [params.form_effect(m) for m in model if m not in base and m != "discovered"]
+def _forms_of(model: list, base) -> list:
+    """The library effect forms a model (a list of forms) selected beyond `base`."""
+    return [m for m in model if m not in base and m != "discovered"]
 
 
 def _norm_rms(cal: Calibration, rows: np.ndarray, mask: np.ndarray) -> float:
@@ -479,7 +479,7 @@ def diagnose(
         ok, why = applicable(name, nominal, data)
         if not ok:
             not_applicable[name] = why
-    # every form of every applicable effect: thermal and compliance also with one
+    # every form of every applicable effect: spiral, thermal and compliance also with one
     # coefficient for all six (identical) cylinders; ΔBIC decides between the forms
     pool = [
         form
@@ -566,7 +566,7 @@ def diagnose(
                 f"{100 * c.heldout_gain:+6.1f} %  explains {100 * c.share:5.0f} % of the excess"
             )
         paying = [c for c in strong if c.heldout_gain > min_gain and c.share >= min_share]
-        if len(_effects_of(model, base)) >= max_effects:
+        if len(_forms_of(model, base)) >= max_effects:
             have = [params.form_effect(m) for m in model]
             paying = [c for c in paying if params.form_effect(c.effect) in have]  # upgrades
         # the dictionary, screened against the same fit
@@ -723,8 +723,8 @@ def diagnose(
             f"strongest: {'; '.join(residual_model.hints()[:3])}"
         )
     return Diagnosis(
-        selected=_effects_of(model, base),
-        selected_forms=[m for m in model if params.form_effect(m) in _effects_of(model, base)],
+        selected=[params.form_effect(m) for m in _forms_of(model, base)],
+        selected_forms=_forms_of(model, base),
         discovered=found,
         absorbed=absorbed,
         ambiguous=ambiguous,
