@@ -22,7 +22,8 @@ Procedure (`diagnose`):
    and the k-fold held-out gain 1 − RMS_heldout(model + effect) / RMS_heldout(model) (RMS
    of σ-normalised residuals of rows the fit did not see; `heldout_rms`). The candidate
    with the lowest ΔBIC among those whose held-out gain exceeds `min_gain` and that
-   explain at least `min_share` of the excess χ² (χ² − dof) is added; repeat.
+   explain at least `min_share` of the excess χ² (χ² − dof) or leave no structure the
+   structure test can see is added; repeat.
    Beside the library, the discovery dictionary (`dictionary.py`) is screened against the
    same fit: its best term is added instead of the best library effect only when it scores
    `priority` ΔBIC units more (library effects keep priority), beats the dictionary-wide
@@ -101,6 +102,9 @@ class Candidate:
     params: dict
     fit: Calibration | None = None
     share: float = 0.0  # share of the model's excess χ² this effect explains
+    # p-value of the structure test on this candidate's fit, where the share rule asked for it
+    # (the effect is named only if it explains the share or leaves no structure): None if not
+    structure_after: float | None = None
 
     def as_json(self) -> dict:
         return {
@@ -110,6 +114,7 @@ class Candidate:
             "heldout_gain": self.heldout_gain,
             "heldout_rms": self.heldout_rms,
             "excess_chi2_share": self.share,
+            "structure_p_after": self.structure_after,
             "params": {
                 k: {"value": v.tolist(), "std": s.tolist()} for k, (v, s) in self.params.items()
             },
@@ -434,8 +439,9 @@ def diagnose(
     (must be stated then, when the table has a lead: the same rule as
     `calibrate`); `alpha`: false-alarm rate of the structure test; `bic_threshold`:
     ΔBIC a candidate must beat; `min_gain`: fractional held-out RMS gain it must bring;
-    `min_share`: share of the current excess χ² (χ² − dof) it must explain — an effect that
-    only nibbles at a larger unexplained structure is not named as its cause;
+    `min_share`: share of the current excess χ² (χ² − dof) it must explain unless it leaves
+    no structure the structure test sees — an effect that only nibbles at a larger
+    unexplained structure is not named as its cause;
     `log`: callable for progress lines (default: stderr); `noise`: "estimate" (default: σ
     estimated for each model in turn; stated σ set relative weights within a group and are
     reported against the estimate) or "fixed" (the stated σ as they are, for ΔBIC and the
@@ -508,6 +514,18 @@ def diagnose(
     def test(cal):
         return structure_test(cal, st, alpha=alpha, draws=draws, seed=seed)
 
+    def explains(c: Candidate) -> bool:
+        """Is a paying candidate the cause of what it explains? It explains at least
+        `min_share` of the excess χ², or it leaves no structure the structure test can see.
+        (With σ estimated the excess is the noise floor 3 √(2 dof): the first clause alone
+        would ask every library effect for a fixed Δχ².) An effect that nibbles at a larger
+        structure leaves that structure behind and fails both."""
+        if c.share >= min_share:
+            return True
+        after = test(c.fit)
+        c.structure_after = after.p_value
+        return not after.structure
+
     def fit_model(model, theta0=None):
         """The current model, with the noise re-estimated for it unless σ is stated."""
         return fit(st, free_mask(model), noise=noise, theta0=theta0)
@@ -565,7 +583,7 @@ def diagnose(
                 f"  candidate {c.effect:14s} dBIC = {c.delta_bic:10.1f}  held-out gain "
                 f"{100 * c.heldout_gain:+6.1f} %  explains {100 * c.share:5.0f} % of the excess"
             )
-        paying = [c for c in strong if c.heldout_gain > min_gain and c.share >= min_share]
+        paying = [c for c in strong if c.heldout_gain > min_gain and explains(c)]
         if len(_forms_of(model, base)) >= max_effects:
             have = [params.form_effect(m) for m in model]
             paying = [c for c in paying if params.form_effect(c.effect) in have]  # upgrades

@@ -15,7 +15,9 @@ the first round's rules to them:
 - a library effect (its columns X) is a candidate with Δχ² = ‖Q_Xᵀ r‖² / s²
   (Q_X a basis of (I − U Uᵀ) X, s² = ‖r‖² / dof: σ estimated, as `diagnose` does by default);
   it is accepted when ΔBIC = −Δχ² + rank · ln n_obs < −`bic_threshold` and it explains at least
-  `min_share` of the excess χ² (with σ estimated: 3 √(2 dof));
+  `min_share` of the excess χ² (with σ estimated: 3 √(2 dof)) or leaves no structure the
+  structure test sees (the test on the residuals (I − Q_X Q_Xᵀ) r, against the null law of
+  the fit with X added, at false-alarm rate `alpha`);
 - a dictionary term is accepted when its penalised score Δχ² − k ln n_obs beats the
   dictionary-wide threshold (the same Monte Carlo law as `dictionary.screen`), absorbed
   terms excluded;
@@ -46,7 +48,7 @@ from .._effects import EFFECTS
 from .._table import Table
 from .diagnose import applicable, discovery_setup
 from .dictionary import Bases, candidates, null_max_scores
-from .structure import whitened
+from .structure import agreements, features, neighbours, null_law, whitened
 
 
 @dataclass
@@ -142,6 +144,7 @@ def detection_power(
     discovery_alpha: float = 0.05,
     bic_threshold: float = 10.0,
     min_share: float = 0.3,
+    alpha: float = 0.01,
     draws: int = 2000,
     chunk: int = 500,
     noise: str = "auto",
@@ -156,7 +159,7 @@ def detection_power(
     term (`{"discovered": Discovered(s2=[0, 0, 1, 0, 0, 0])}`: it must be exactly one
     dictionary candidate); the module sets the shape, `amplitudes` (peak signal / σ) the
     size; `trials` per amplitude (also the noise-only trials); `draws`: Monte Carlo draws of
-    the dictionary threshold; `noise`: the σ the trials' noise has — "stated" (the data's σ
+    the dictionary threshold and of each library form's structure-test null law; `noise`: the σ the trials' noise has — "stated" (the data's σ
     columns, or the default σ where a file has none), "estimate" (each group's σ as the plan
     run's residuals show it: for σ stated wrong; one run's estimate is itself uncertain,
     ±6 % at 500 degrees of freedom, and biases every probability with it) or "auto"
@@ -223,6 +226,22 @@ def detection_power(
     threshold = float(np.quantile(null, 1.0 - discovery_alpha))
     excess = 3.0 * math.sqrt(2.0 * max(w.dof, 1.0))
     names = libs + [c.label for c in dict_c]
+    # the structure test on each library form's fit: its neighbours and its null law
+    nns = {f: neighbours(x, 3, w.rows) for f, x in features(st).items()}
+    lib_q = [lib_b.Q[:, lib_b.bounds[i] : lib_b.bounds[i + 1]] for i in range(len(libs))]
+    laws = [null_law(w, nns, draws, seed + 7919 * (i + 1), Q=q) for i, q in enumerate(lib_q)]
+
+    def explains(res: np.ndarray, dl: np.ndarray, strong: np.ndarray) -> np.ndarray:
+        """(b, L): each strong form explains `min_share` of the excess or leaves no
+        structure (`diagnose`'s rule) for residuals `res` (b, M)."""
+        ok = dl >= min_share * excess
+        for li, (q, law) in enumerate(zip(lib_q, laws)):
+            ask = np.flatnonzero(strong[:, li] & ~ok[:, li])
+            if len(ask):
+                r = res[ask] - (res[ask] @ q) @ q.T
+                p = law.p_value(law.z(agreements(w, nns, r.reshape(len(ask), -1, 6))))
+                ok[ask, li] = p >= alpha
+        return ok
 
     def decide(res: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(b,) index into `names` of the first name for residuals `res` (b, M), −1: none;
@@ -230,7 +249,8 @@ def detection_power(
         (index into the dictionary, −1: none)."""
         dl = lib_b.delta_chi2(res, w.dof)
         pl = dl - k_lib
-        ok_l = (pl > bic_threshold) & (dl >= min_share * excess)
+        strong = pl > bic_threshold
+        ok_l = strong & explains(res, dl, strong)
         best_l = np.argmax(np.where(ok_l, pl, -np.inf), axis=1)
         any_l = ok_l.any(axis=1)
         sd = dict_b.delta_chi2(res, w.dof) - k_dict

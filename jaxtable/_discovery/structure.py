@@ -184,6 +184,55 @@ def whitened(cal: Calibration, st: Setup, tol: float = 1e-6, vce: bool = True) -
     return Whitened(e, factor, U, L, mask, rows, float(red[mask.reshape(-1)].sum()))
 
 
+@dataclass(frozen=True)
+class NullLaw:
+    """Null law of the family-wise statistic for one fit's projection: per family the mean
+    and std of A_f over Monte Carlo residuals, and `zmax` (draws,) the largest standardised
+    agreement of each draw."""
+
+    mean: dict
+    std: dict
+    zmax: np.ndarray
+    null: dict  # {family: (draws,) A_f}
+
+    def z(self, observed: dict) -> np.ndarray:
+        """Largest standardised agreement max_f (A_f − mean_f) / std_f of `observed`
+        {family: A_f (...,)}."""
+        return np.asarray(
+            np.max([(observed[f] - self.mean[f]) / self.std[f] for f in self.mean], axis=0)
+        )
+
+    def p_value(self, zmax: np.ndarray) -> np.ndarray:
+        """Monte Carlo p-value (1 + #{null ≥ z}) / (draws + 1) of `zmax` (...,)."""
+        srt = np.sort(self.zmax)
+        above = len(srt) - np.searchsorted(srt, np.asarray(zmax), side="left")
+        return np.asarray((1.0 + above) / (len(srt) + 1.0))
+
+
+def null_law(w: Whitened, nns: dict, draws: int, seed: int, Q=None) -> NullLaw:
+    """`NullLaw` of residuals (I − H) z of fit `w` (`Whitened.null_draws`), or of
+    (I − H − Q Qᵀ) z with `Q` (N·6, q) orthonormal and orthogonal to the fit's column space:
+    the fit with q more columns, linearised; `nns` {family: (R, k) neighbours of w.rows}."""
+    null = {f: [] for f in nns}
+    for z in w.null_draws(draws, seed):
+        if Q is not None:
+            flat = z.reshape(len(z), -1)
+            z = (flat - (flat @ Q) @ Q.T).reshape(z.shape)
+        for f, nn in nns.items():
+            null[f].append(_agreement(z[:, w.rows], nn))
+    null = {f: np.concatenate(v) for f, v in null.items()}
+    mean = {f: float(v.mean()) for f, v in null.items()}
+    std = {f: float(v.std()) if v.std() > 0 else 1.0 for f, v in null.items()}
+    law = NullLaw(mean, std, np.zeros(0), null)
+    return NullLaw(mean, std, law.z(null), null)
+
+
+def agreements(w: Whitened, nns: dict, e: np.ndarray | None = None) -> dict:
+    """{family: A_f} of whitened residuals `e` (..., N, 6) (default the fit's own)."""
+    e = w.e if e is None else e
+    return {f: _agreement(e[..., w.rows, :], nn) for f, nn in nns.items()}
+
+
 def structure_test(
     cal: Calibration,
     st: Setup,
@@ -205,29 +254,19 @@ def structure_test(
 
     feats = features(st)
     nns = {f: neighbours(x, neighbours_k, rows) for f, x in feats.items()}
-    observed = {f: float(_agreement(e[rows], nn)) for f, nn in nns.items()}
-    null = {f: [] for f in feats}
-    for z in w.null_draws(draws, seed):
-        for f, nn in nns.items():
-            null[f].append(_agreement(z[:, rows], nn))
-    null = {f: np.concatenate(v) for f, v in null.items()}
-    stats = {}
-    zmax_obs = -np.inf
-    zmax_null = np.full(draws, -np.inf)
-    for f in feats:
-        mean, std = float(null[f].mean()), float(null[f].std())
-        std = std if std > 0 else 1.0
-        zf = (observed[f] - mean) / std
-        zmax_obs = max(zmax_obs, zf)
-        zmax_null = np.maximum(zmax_null, (null[f] - mean) / std)
-        stats[f] = {
+    observed = {f: float(a) for f, a in agreements(w, nns).items()}
+    law = null_law(w, nns, draws, seed)
+    stats = {
+        f: {
             "agreement": observed[f],
-            "null_mean": mean,
-            "null_std": std,
-            "z": float(zf),
-            "p_value": float((1 + np.sum(null[f] >= observed[f])) / (draws + 1)),
+            "null_mean": law.mean[f],
+            "null_std": law.std[f],
+            "z": float((observed[f] - law.mean[f]) / law.std[f]),
+            "p_value": float((1 + np.sum(law.null[f] >= observed[f])) / (draws + 1)),
         }
-    p = float((1 + np.sum(zmax_null >= zmax_obs)) / (draws + 1))
+        for f in feats
+    }
+    p = float(law.p_value(law.z(observed)))
     hints = tuple(
         sorted((f for f in stats if stats[f]["p_value"] < alpha), key=lambda f: -stats[f]["z"])
     )
