@@ -139,3 +139,28 @@ def test_diagnose_fits_the_form_the_data_support(spread, form):
     saved = np.asarray(diag.fitted_model().effects["thermal"].alpha)
     np.testing.assert_allclose(saved, np.broadcast_to(v, (6,)), rtol=1e-12)
     assert not diag.unexplained
+
+
+def test_a_weak_shared_effect_that_leaves_no_structure_is_named():
+    """With σ estimated, χ² = dof, so the share of the excess χ² is a share of the noise
+    floor 3 √(2 dof) and asks for Δχ² ≥ 30 here. A shared α an order of magnitude below the
+    usual (ΔBIC −15, Δχ² 22) falls short of it; it is named because the structure test sees
+    nothing left once it is in (the rule's second clause), at a value within 3.5σ."""
+    alpha = 0.085 * 11.5e-6
+    nominal, data = _run({"thermal": jt.Thermal(alpha)}, 3)
+    diag = diagnose(
+        nominal,
+        data,
+        library=["thermal"],
+        discover=False,
+        flexible=False,
+        compensated=False,
+        log=lambda _: None,
+    )
+    assert diag.selected_forms == ["thermal[all]"], diag.selected_forms
+    cand = next(c for c in diag.steps[0].candidates if c.effect == "thermal[all]")
+    assert cand.delta_bic < -10 and cand.share < 0.3, (cand.delta_bic, cand.share)
+    assert cand.structure_after is not None and cand.structure_after >= 0.01
+    assert cand.as_json()["structure_p_after"] == cand.structure_after
+    v, s = diag.effect_params("thermal")["alpha"]
+    assert abs(v[0] - alpha) < 3.5 * s[0], (v, s)

@@ -20,11 +20,20 @@ import pytest
 from scipy.stats import binom
 
 import jaxtable as jt
+from jaxtable import _params as params
 from jaxtable._calibration.fit import fit, setup
 from jaxtable._calibration.instruments import Instrument, tracker6
 from jaxtable._calibration.simulate import perturb_table, plan_random, simulate
-from jaxtable._discovery.dictionary import candidates, screen
-from jaxtable._discovery.structure import structure_test
+from jaxtable._discovery.diagnose import discovery_setup
+from jaxtable._discovery.dictionary import Bases, candidates, screen
+from jaxtable._discovery.structure import (
+    agreements,
+    features,
+    neighbours,
+    null_law,
+    structure_test,
+    whitened,
+)
 
 N = 150
 WRONG = np.array([0.75, 0.75, 0.75, 1.25, 1.25, 1.25])  # stated / true σ per column
@@ -175,3 +184,45 @@ def test_a_missing_effect_is_seen_and_its_variable_hinted(name, effect, hint):
     result = structure_test(cal, st)
     assert result.structure, result.families
     assert result.hints[0] in hint, result.hints
+
+
+def test_the_linearised_test_of_an_added_effect_equals_the_test_on_its_refit():
+    """`detection_power` tests a candidate's fit without refitting: residuals
+    (I − Q Qᵀ) e of the base fit (Q: what the candidate's columns add to its column space)
+    against `null_law(..., Q=Q)`. On data whose thermal drift the base fit leaves as strong
+    structure (z ≈ 8), that gives the refit's agreements within one null std per family and
+    the same verdict (no structure left), and the null law with Q matches the refit's."""
+    nominal = jt.reference_table()
+    true = perturb_table(nominal, 3, joint_sigma=0.010, zero_sigma=0.050)
+    rng = np.random.default_rng(3)
+    data = simulate(
+        nominal,
+        true,
+        plan_random(100, 3),
+        tracker6(),
+        effects={"thermal": jt.Thermal(np.full(6, 3.5e-6))},
+        compensated=False,
+        temperature=20 + 10 * np.arange(100) / 100 + rng.normal(0, 0.2, 100),
+        seed=3,
+    )
+    st = discovery_setup(nominal, data, compensated=False)
+    base = fit(st, st.free_mask(jt.GEOMETRY))
+    refit = fit(st, st.free_mask(jt.GEOMETRY + params.effect_parameters("thermal[all]")))
+    w0, w1 = whitened(base, st), whitened(refit, st)
+    index = {k: i for i, k in enumerate(st.names)}
+    cols = [index[k] for k in params.form_keys(st.names, "thermal[all]")]
+    Q = Bases.of(np.asarray(base.jacobian_full) * w0.factor.reshape(-1, 1), w0.U, [cols]).Q
+    nns = {f: neighbours(x, 3, w0.rows) for f, x in features(st).items()}
+    e0 = w0.e.reshape(-1)
+    law0, law_q, law1 = (
+        null_law(w, nns, 2000, 5, Q=q) for w, q in ((w0, None), (w0, Q), (w1, None))
+    )
+    a0 = agreements(w0, nns)
+    a_lin = agreements(w0, nns, (e0 - Q @ (Q.T @ e0)).reshape(-1, 6))
+    a_refit = agreements(w1, nns)
+    assert law0.z(a0) > 5 and law0.p_value(law0.z(a0)) < 0.01  # the base leaves structure
+    for f in nns:
+        assert abs(a_lin[f] - a_refit[f]) < law1.std[f], (f, a_lin[f], a_refit[f], a0[f])
+        assert abs(law_q.mean[f] - law1.mean[f]) < 0.1 * law1.std[f]
+        assert abs(law_q.std[f] / law1.std[f] - 1) < 0.05
+    assert law_q.p_value(law_q.z(a_lin)) >= 0.01 and law1.p_value(law1.z(a_refit)) >= 0.01

@@ -159,12 +159,13 @@ def detection_power(
     term (`{"discovered": Discovered(s2=[0, 0, 1, 0, 0, 0])}`: it must be exactly one
     dictionary candidate); the module sets the shape, `amplitudes` (peak signal / σ) the
     size; `trials` per amplitude (also the noise-only trials); `draws`: Monte Carlo draws of
-    the dictionary threshold and of each library form's structure-test null law; `noise`: the σ the trials' noise has — "stated" (the data's σ
-    columns, or the default σ where a file has none), "estimate" (each group's σ as the plan
-    run's residuals show it: for σ stated wrong; one run's estimate is itself uncertain,
-    ±6 % at 500 degrees of freedom, and biases every probability with it) or "auto"
-    (default: stated where the data state σ, else estimated); other arguments as in
-    `diagnose`."""
+    the dictionary threshold and of each library form's structure-test null law; `alpha`:
+    the structure test's false-alarm rate; `noise`: the σ the trials' noise has — "stated"
+    (the data's σ columns, or the default σ where a file has none), "estimate" (each
+    group's σ as the plan run's residuals show it: for σ stated wrong; one run's estimate is
+    itself uncertain, ±6 % at 500 degrees of freedom, and biases every probability with it)
+    or "auto" (default: stated where the data state σ, else estimated); other arguments as
+    in `diagnose`."""
     if noise not in ("auto", "stated", "estimate"):
         raise ValueError(f"noise must be 'auto', 'stated' or 'estimate'; got {noise!r}")
     if trials < 1:

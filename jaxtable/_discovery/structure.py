@@ -248,7 +248,7 @@ def structure_test(
     of the null law (p-value resolution 1/(draws + 1)); `neighbours_k`: k; `seed`: of the
     draws."""
     w = whitened(cal, st, tol)
-    rows, e = w.rows, w.e
+    rows = w.rows
     if len(rows) <= neighbours_k + 1:
         raise ValueError(f"the structure test needs more than {neighbours_k + 1} fitted rows")
 
