@@ -50,6 +50,20 @@ def _calibrate_thermal(nominal, data, free):
     )
 
 
+def _diagnose_thermal(alpha, seed=3):
+    """`diagnose` with the thermal effect as the only candidate, on a run with `alpha`."""
+    nominal, data = _run({"thermal": jt.Thermal(alpha)}, seed)
+    return diagnose(
+        nominal,
+        data,
+        library=["thermal"],
+        discover=False,
+        flexible=False,
+        compensated=False,
+        log=lambda _: None,
+    )
+
+
 def test_names_of_the_shared_forms():
     assert params.effect_forms("thermal") == ("thermal", "thermal[all]")
     assert params.effect_forms("compliance") == ("compliance", "compliance[all]")
@@ -120,16 +134,7 @@ def test_diagnose_fits_the_form_the_data_support(spread, form):
     fit), its coefficient within 3.5σ of the truth and the saved model carries it on every
     leg. α differing by ±30 % between legs (±25 µm over the run): the per-leg form."""
     alpha = 11.5e-6 * (1.0 + spread)
-    nominal, data = _run({"thermal": jt.Thermal(alpha)}, 3)
-    diag = diagnose(
-        nominal,
-        data,
-        library=["thermal"],
-        discover=False,
-        flexible=False,
-        compensated=False,
-        log=lambda _: None,
-    )
+    diag = _diagnose_thermal(alpha)
     assert diag.selected == ["thermal"], diag.selected
     assert diag.selected_forms == [form], diag.selected_forms
     assert diag.as_json()["selected_forms"] == [form]
@@ -147,16 +152,7 @@ def test_a_weak_shared_effect_that_leaves_no_structure_is_named():
     usual (ΔBIC −15, Δχ² 22) falls short of it; it is named because the structure test sees
     nothing left once it is in (the rule's second clause), at a value within 3.5σ."""
     alpha = 0.085 * 11.5e-6
-    nominal, data = _run({"thermal": jt.Thermal(alpha)}, 3)
-    diag = diagnose(
-        nominal,
-        data,
-        library=["thermal"],
-        discover=False,
-        flexible=False,
-        compensated=False,
-        log=lambda _: None,
-    )
+    diag = _diagnose_thermal(alpha)
     assert diag.selected_forms == ["thermal[all]"], diag.selected_forms
     cand = next(c for c in diag.steps[0].candidates if c.effect == "thermal[all]")
     assert cand.delta_bic < -10 and cand.share < 0.3, (cand.delta_bic, cand.share)
