@@ -310,8 +310,10 @@ def report(rows, null, run_time, out):
         f"- Target (≥ 90 % of the GP's held-out gain with ≤ 2 parameters per finding): met by "
         f"{len(ok_terms)} of the {len(terms)} dictionary terms the GP gains on "
         f"({', '.join(ok_terms) or 'none'}) and {len(ok) - len(ok_terms)} of the "
-        f"{len(measured) - len(terms)} library effects (library effects carry one parameter "
-        "per leg by design)."
+        f"{len(measured) - len(terms)} library effects "
+        f"({', '.join(k for k in ok if k not in ok_terms) or 'none'}; the others gain less "
+        "or are named in a per-leg form: one parameter per leg or more, as each nut and "
+        "screw has its own)."
         + (
             f" Too weak to compare (the GP gains under twice its noise): {'; '.join(weak)}."
             if weak
