@@ -160,38 +160,3 @@ def test_a_weak_shared_effect_that_leaves_no_structure_is_named():
     assert cand.as_json()["structure_p_after"] == cand.structure_after
     v, s = diag.effect_params("thermal")["alpha"]
     assert abs(v[0] - alpha) < 3.5 * s[0], (v, s)
-
-
-def test_free_column_steps_equal_full_jacobian_steps():
-    """A discovery set-up holds 161 parameters, of which a fit frees 50-70: Gauss–Newton
-    then differentiates only the free columns (`free_columns`). Same optimum, steps,
-    residual and final Jacobian (every column) as the steps that differentiate them all."""
-    import jax.numpy as jnp
-    from jax.flatten_util import ravel_pytree
-
-    from jaxtable._calibration.fit import _gauss_newton, _jacobian, free_columns
-
-    nominal, data = _run({"thermal": jt.Thermal(11.5e-6), "spiral": jt.Spiral(12.7)}, 5, n=60)
-    st = discovery_setup(nominal, data, compensated=False)
-    mask = st.free_mask(params.GEOMETRY + params.effect_parameters("thermal[all]"))
-    idx, valid = free_columns(mask)
-    assert idx is not None and len(idx) < len(mask) and int(valid.sum()) == int(mask.sum())
-    args = (st.problem, st.layout, st.theta0)
-    fast = _gauss_newton(*args, idx, valid, 1e-8, 1e-8, 50)
-    full = _gauss_newton(*args, None, jnp.asarray(mask), 1e-8, 1e-8, 50)
-    assert bool(fast[1]) and bool(full[1]) and int(fast[2]) == int(full[2])
-    f_fast, f_full = (np.asarray(ravel_pytree(o[0])[0]) for o in (fast, full))
-    scale = np.linalg.norm(np.asarray(full[3]), axis=0)  # 1 / column norms: comparable units
-    np.testing.assert_allclose(f_fast * scale, f_full * scale, atol=1e-7)
-    np.testing.assert_allclose(np.asarray(fast[6]), np.asarray(full[6]), atol=1e-8)
-    J_fast = np.asarray(fast[3])
-    np.testing.assert_allclose(
-        J_fast[:, valid > 0],
-        np.asarray(full[3])[:, np.asarray(idx)[valid > 0]],
-        rtol=1e-9,
-        atol=1e-9,
-    )
-    J_all = np.asarray(_jacobian(st.problem, st.layout, fast[0])[0])
-    np.testing.assert_allclose(J_all, np.asarray(full[3]), rtol=1e-7, atol=1e-7)
-    cal = fit(st, mask, noise="fixed")  # the public path: every column in `jacobian_full`
-    np.testing.assert_allclose(cal.jacobian_full, J_all, rtol=1e-9, atol=1e-9)

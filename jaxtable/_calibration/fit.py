@@ -192,29 +192,8 @@ def _scales(J, mask):
     return jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 1.0) * mask
 
 
-def _free_columns(problem, layout, unravel, idx):
-    """f ↦ (J_K (N·6, K), (residual (N·6,), solved (N,))): the Jacobian's columns `idx` (K,)
-    only (one forward tangent each), primal shared."""
-
-    def res_flat(f):
-        r, solved = _weighted_residual(problem, layout, unravel(f))
-        return r, (r, solved)
-
-    def evaluate(f):
-        E = jax.nn.one_hot(idx, f.shape[0], dtype=f.dtype)
-
-        def push(t):
-            _, jt, aux = jax.jvp(res_flat, (f,), (t,), has_aux=True)
-            return jt, aux
-
-        JK, aux = jax.vmap(push, out_axes=(0, None))(E)  # primal unbatched: computed once
-        return JK.T, aux
-
-    return evaluate
-
-
 @eqx.filter_jit
-def _gauss_newton(problem, layout, theta0, idx, valid, rtol, atol, max_steps, rcond=1e-6):
+def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e-6):
     """Gauss-Newton in Jacobi-scaled variables u (θ = θ0 + D·u, D = `_scales` of the
     Jacobian at θ0) with truncated-SVD least-squares steps: singular values below `rcond` ×
     the largest (frozen, i.e. masked, and unidentifiable directions) get no step, so those
@@ -227,19 +206,10 @@ def _gauss_newton(problem, layout, theta0, idx, valid, rtol, atol, max_steps, rc
     evaluated point u_k when max|u_k − u_k−1| / (atol + rtol·|u_k|) < 1 and
     max|r_k − r_k−1| / (atol + rtol·|r_k|) < 1.
 
-    `idx` (K,): the free columns, the only ones each step differentiates (`free_columns`;
-    None: every column, frozen ones included), `valid` (K,): 0 for padding (or, with
-    `idx` None, frozen) columns.
-
-    Returns (θ, converged, steps, J at θ (columns `idx`), solved (N,), residual at θ0,
-    residual at θ)."""
+    Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ)."""
     flat0, unravel = ravel_pytree(theta0)
+    evaluate = _residual_and_jacobian(problem, layout, unravel)
     n_res, n_rows, P = problem.measured.size, problem.measured.shape[0], flat0.shape[0]
-    if idx is None:  # every column
-        evaluate, K = _residual_and_jacobian(problem, layout, unravel), P
-    else:
-        evaluate, K = _free_columns(problem, layout, unravel, idx), idx.shape[0]
-    sel = slice(None) if idx is None else idx
 
     def cond(c):
         return ~c["done"] & (c["k"] < max_steps) & jnp.all(jnp.isfinite(c["f"]))
@@ -247,11 +217,11 @@ def _gauss_newton(problem, layout, theta0, idx, valid, rtol, atol, max_steps, rc
     def body(c):
         k, f = c["k"], c["f"]
         J, (r, solved) = evaluate(f)
-        D = jnp.where(k == 0, _scales(J, valid), c["D"])
+        D = jnp.where(k == 0, _scales(J, mask), c["D"])
         r0 = jnp.where(k == 0, r, c["r0"])
         on = D > 0
-        u = jnp.where(on, (f[sel] - flat0[sel]) / jnp.where(on, D, 1.0), 0.0)
-        du = jnp.where(on, (f[sel] - c["f_prev"][sel]) / jnp.where(on, D, 1.0), 0.0)
+        u = jnp.where(on, (f - flat0) / jnp.where(on, D, 1.0), 0.0)
+        du = jnp.where(on, (f - c["f_prev"]) / jnp.where(on, D, 1.0), 0.0)
         small_u = jnp.max(jnp.abs(du) / (atol + rtol * jnp.abs(u))) < 1
         small_r = jnp.max(jnp.abs(r - c["r"]) / (atol + rtol * jnp.abs(r))) < 1
         done = (k > 0) & small_u & small_r
@@ -260,7 +230,7 @@ def _gauss_newton(problem, layout, theta0, idx, valid, rtol, atol, max_steps, rc
         step = -Vt.T @ (jnp.where(keep, 1.0 / jnp.where(keep, sv, 1.0), 0.0) * (U.T @ r))
         return dict(
             k=k + 1,
-            f=jnp.where(done, f, f.at[sel].add(D * step)),
+            f=jnp.where(done, f, f + D * step),
             f_prev=f,
             r=r,
             r0=r0,
@@ -276,13 +246,13 @@ def _gauss_newton(problem, layout, theta0, idx, valid, rtol, atol, max_steps, rc
         f_prev=flat0,
         r=jnp.zeros(n_res),
         r0=jnp.zeros(n_res),
-        J=jnp.zeros((n_res, K)),
-        D=jnp.zeros(K),
+        J=jnp.zeros((n_res, P)),
+        D=jnp.zeros(P),
         solved=jnp.zeros(n_rows, bool),
         done=jnp.array(False),
     )
     c = jax.lax.while_loop(cond, body, init)
-    # the last evaluated point: J (its columns `idx`), r and solved belong to it
+    # the last evaluated point: J, r and solved belong to it
     return unravel(c["f_prev"]), c["done"], c["k"], c["J"], c["solved"], c["r0"], c["r"]
 
 
@@ -309,23 +279,6 @@ def _levenberg_marquardt(
     return value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
 
-def free_columns(mask, bucket: int = 32):
-    """(idx (K,), valid (K,)): the columns a Gauss–Newton step differentiates. The free
-    parameters (`mask` > 0), padded to a multiple K of `bucket` with the last free index
-    marked invalid, so that fits whose free counts fall in one bucket share one compiled
-    program; every column (`valid` = mask) when K would reach the parameter count."""
-    mask = np.asarray(mask)
-    free = np.flatnonzero(mask > 0)
-    K = -(-max(len(free), 1) // bucket) * bucket
-    if K >= len(mask):
-        return None, jnp.asarray(mask, float)
-    pad = K - len(free)
-    last = free[-1] if len(free) else 0
-    idx = np.concatenate([free, np.full(pad, last)]).astype(np.int32)
-    valid = np.concatenate([np.ones(len(free)), np.zeros(pad)])
-    return jnp.asarray(idx), jnp.asarray(valid)
-
-
 def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_newton", rcond=1e-6):
     """Fit in Jacobi-scaled variables (θ = θ0 + D·mask·u, D = 1 / column norms of the
     Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps. `mask` (P,)
@@ -336,11 +289,7 @@ def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_n
 
     Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ)."""
     if method == "gauss_newton":
-        idx, valid = free_columns(mask)
-        out = _gauss_newton(problem, layout, theta0, idx, valid, rtol, atol, max_steps, rcond)
-        if idx is not None:  # the frozen columns too (the discovery screens use them)
-            out = (*out[:3], _jacobian(problem, layout, out[0])[0], *out[4:])
-        return out
+        return _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond)
     J0, r0, _ = _jacobian(problem, layout, theta0)
     D = _scales(J0, mask)
     value, converged, steps = _levenberg_marquardt(
