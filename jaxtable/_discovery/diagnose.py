@@ -524,6 +524,10 @@ def diagnose(
             return True
         after = test(c.fit)
         c.structure_after = after.p_value
+        log(
+            f"  {c.effect}: below {100 * min_share:.0f} % of the excess; with it in, "
+            f"{after.words()}"
+        )
         return not after.structure
 
     def fit_model(model, theta0=None):

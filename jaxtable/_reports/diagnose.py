@@ -276,14 +276,17 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
             + (step.structure.words() if step.structure is not None else "")
             + f". Decision: {step.decision}.",
             "",
-            "| candidate | ΔBIC | held-out gain | share of excess χ² | fitted parameters |",
-            "|---|---|---|---|---|",
+            "| candidate | ΔBIC | held-out gain | share of excess χ² | structure left "
+            "(p) | fitted parameters |",
+            "|---|---|---|---|---|---|",
         ]
         for c in step.candidates:
+            # the structure test on the candidate's fit, where the share fell short
+            left = "–" if c.structure_after is None else f"{c.structure_after:.3g}"
             lines.append(
                 f"| {vocab.form_label(c.effect)} | {c.delta_bic:.1f} | "
                 f"{100 * c.heldout_gain:+.1f} % | "
-                f"{100 * c.share:.0f} % | {_fmt_params(c.params)} |"
+                f"{100 * c.share:.0f} % | {left} | {_fmt_params(c.params)} |"
             )
         lines.append("")
     lines += _dictionary_lines(diag)
