@@ -26,6 +26,7 @@ whole family set (not per family).
 """
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -186,14 +187,17 @@ def whitened(cal: Calibration, st: Setup, tol: float = 1e-6, vce: bool = True) -
 
 @dataclass(frozen=True)
 class NullLaw:
-    """Null law of the family-wise statistic for one fit's projection: per family the mean
-    and std of A_f over Monte Carlo residuals, and `zmax` (draws,) the largest standardised
-    agreement of each draw."""
+    """Null law of the family-wise statistic for one fit's projection: per family the
+    Monte Carlo agreements `null` {family: (draws,) A_f}, their mean and std, and `zmax`
+    (draws,) the largest standardised agreement of each draw."""
 
     mean: dict
     std: dict
-    zmax: np.ndarray
-    null: dict  # {family: (draws,) A_f}
+    null: dict
+
+    @cached_property
+    def zmax(self) -> np.ndarray:
+        return np.sort(self.z(self.null))
 
     def z(self, observed: dict) -> np.ndarray:
         """Largest standardised agreement max_f (A_f − mean_f) / std_f of `observed`
@@ -204,7 +208,7 @@ class NullLaw:
 
     def p_value(self, zmax: np.ndarray) -> np.ndarray:
         """Monte Carlo p-value (1 + #{null ≥ z}) / (draws + 1) of `zmax` (...,)."""
-        srt = np.sort(self.zmax)
+        srt = self.zmax
         above = len(srt) - np.searchsorted(srt, np.asarray(zmax), side="left")
         return np.asarray((1.0 + above) / (len(srt) + 1.0))
 
@@ -223,8 +227,7 @@ def null_law(w: Whitened, nns: dict, draws: int, seed: int, Q=None) -> NullLaw:
     null = {f: np.concatenate(v) for f, v in null.items()}
     mean = {f: float(v.mean()) for f, v in null.items()}
     std = {f: float(v.std()) if v.std() > 0 else 1.0 for f, v in null.items()}
-    law = NullLaw(mean, std, np.zeros(0), null)
-    return NullLaw(mean, std, law.z(null), null)
+    return NullLaw(mean, std, null)
 
 
 def agreements(w: Whitened, nns: dict, e: np.ndarray | None = None) -> dict:
