@@ -1,6 +1,7 @@
-"""`python -m benchmarks [--quick] [--out DIR]` from the repository root (same as `jaxtable
-bench`): runs the benchmark, prints the Markdown table, writes benchmark.{json,md} into DIR
-(default results/)."""
+"""`python -m benchmarks [--quick] [--suite] [--out DIR]` from the repository root (same as
+`jaxtable bench`): runs the benchmark, prints the Markdown table, writes benchmark.{json,md}
+into DIR (default results/). `--suite` also times the default test suite from an empty
+compilation cache."""
 
 import argparse
 import sys
@@ -8,17 +9,27 @@ from pathlib import Path
 
 import jaxtable as jt
 
-from .bench import markdown, run_benchmark, write
+from .bench import markdown, run_benchmark, suite_wall, write
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     p.add_argument("--quick", action="store_true", help="tiny sizes: a smoke run (~1 min)")
+    p.add_argument(
+        "--suite",
+        action="store_true",
+        help="also time the default test suite from an empty compilation cache (~15-30 min)",
+    )
     p.add_argument("--table", type=Path, default=None, help="table file (default: reference)")
     p.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results")
     args = p.parse_args(argv)
     table = jt.reference_table() if args.table is None else jt.load_table(args.table)
-    r = run_benchmark(table, quick=args.quick, log=lambda m: print(m, file=sys.stderr))
+    log = lambda m: print(m, file=sys.stderr)  # noqa: E731
+    r = run_benchmark(table, quick=args.quick, log=log)
+    if args.suite:
+        log("default test suite (empty compilation cache) ...")
+        r["suite"] = suite_wall()
+        log(f"suite: {r['suite']['seconds'] / 60:.1f} min, {r['suite']}")
     print(markdown(r))
     paths = write(r, args.out)
     print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)

@@ -518,6 +518,28 @@ def _diagnose_wall(runs: int = 2) -> dict:
     return out
 
 
+def suite_wall() -> dict:
+    """Wall time of the default test suite (`python -m pytest -q`, the README's test command:
+    every core, `slow` checks skipped) in a fresh process with an empty persistent
+    compilation cache, as on a clean clone; with its pass/fail counts."""
+    import tempfile
+
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, JAXTABLE_TEST_CACHE=str(Path(tmp) / "cache"))
+        t0 = time.perf_counter()
+        p = subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            env=env,
+        )
+        wall = time.perf_counter() - t0
+    counts = {k: int(n) for n, k in re.findall(r"(\d+) (passed|failed|errors?|skipped)", p.stdout)}
+    return {"seconds": wall, "returncode": p.returncode, **counts}
+
+
 def _bench_error_map(table: Table, quick: bool) -> dict:
     """The paper's full tolerance budget (6 sources, std/bias/cond/reachability) over random
     commanded poses, streamed in chunks with the summary statistics."""
@@ -635,6 +657,13 @@ def markdown(r: dict) -> str:
             f"| `jaxtable diagnose` on the bundled example (150 rows; a fresh process each "
             f"run) | first run (empty compilation cache) {r['diagnose']['first_s']:.0f} s, "
             f"repeat {r['diagnose']['repeat_s']:.0f} s |"
+        )
+    if "suite" in r:
+        su = r["suite"]
+        L.append(
+            f"| default test suite (`python -m pytest -q`, both cores, empty compilation "
+            f"cache) | {su['seconds'] / 60:.1f} min, {su.get('passed', 0)} passed, "
+            f"{su.get('failed', 0)} failed |"
         )
     L += [
         f"| streamed command map, {m['poses']:.0e} poses (x, y, z, yaw grid) | "

@@ -432,6 +432,7 @@ def _bench(args) -> int:
     from benchmarks.__main__ import main as bench_main
 
     argv = ["--out", str(args.out)] + (["--quick"] if args.quick else [])
+    argv += ["--suite"] if args.suite else []
     if args.table is not None:
         argv += ["--table", str(args.table)]
     return bench_main(argv)
@@ -701,6 +702,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     common(sp, "out/bench")
     sp.add_argument("--quick", action="store_true", help="tiny sizes: a smoke run (~1 min)")
+    sp.add_argument(
+        "--suite",
+        action="store_true",
+        help="also time the default test suite from an empty compilation cache (~15-30 min)",
+    )
     sp.set_defaults(func=_bench)
     return p
 

@@ -9,7 +9,11 @@ jax.config.update("jax_enable_x64", True)
 # Share compiled programs between the test workers (pytest-xdist) and between runs: JAX's
 # persistent compilation cache, in the (git-ignored) pytest cache directory.
 # The command line (main() called in tests) turns the cache on where JAXTABLE_CACHE_DIR says.
-CACHE = Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"
+# JAXTABLE_TEST_CACHE moves it (the benchmark times the suite from an empty one).
+CACHE = Path(
+    os.environ.get("JAXTABLE_TEST_CACHE")
+    or Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"
+)
 os.environ["JAXTABLE_CACHE_DIR"] = str(CACHE)
 jax.config.update("jax_compilation_cache_dir", str(CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
