@@ -169,3 +169,101 @@ def test_csv_round_trip_and_bad_files(table, tmp_path):
     calibrate(table, data, free=("zero_lengths",), estimate_frame=False)
     with pytest.raises(ValueError, match=r"row 4: commanded length of leg 3 \(1200.000 mm\)"):
         calibrate(table, data_bad)
+
+
+def test_fit_jacobian_equals_central_differences(table):
+    """The fit's Jacobian (reverse mode row by row, through the forward solve's implicit
+    derivative) = central differences of the weighted residual, in every kind of parameter:
+    joints, zero lengths, the spiral lead, backlash and compliance (whose leg forces solve
+    the statics at each pose; a 20 kg payload in session 2) and the frames of two tracker
+    sessions, at a point where every parameter has moved from its start."""
+    import jax.numpy as jnp
+    from jax.flatten_util import ravel_pytree
+
+    from jaxtable._calibration.fit import _jacobian, _scales, residual_jit, setup
+    from jaxtable._effects import Backlash, Compliance, Spiral
+    from jaxtable._params import GEOMETRY
+
+    true = perturb_table(table, seed=21)
+    eff = {"spiral": Spiral(12.7 * np.ones(6)), "backlash": Backlash(0.01)}
+    eff["compliance"] = Compliance(5e-5)
+    runs = [
+        simulate(
+            table,
+            true,
+            plan_random(12, seed=22 + k),
+            tracker6(),
+            effects=eff,
+            session=str(k + 1),
+            payload=20.0 * k,
+            frame=(0.5 * k, 0, 0, 0, 0, 0.001 * k),
+            seed=k,
+        )
+        for k in range(2)
+    ]
+    model = {"spiral": Spiral.from_table(table), "backlash": Backlash()}
+    model["compliance"] = Compliance()
+    free = GEOMETRY + ("spiral.lead", "backlash.w", "compliance.flex")
+    st = setup(table, concat(*runs), free, effects=model)
+    flat, unravel = ravel_pytree(st.theta0)
+    J0, _, _ = _jacobian(st.problem, st.layout, st.theta0)
+    assert np.all(np.linalg.norm(np.asarray(J0), axis=0) > 0)  # every parameter matters
+    # D: a step of D_j moves the weighted residual by about one unit
+    D = np.asarray(_scales(J0, jnp.ones(flat.shape)))
+    f = np.asarray(flat) + D * np.random.default_rng(0).standard_normal(flat.shape)
+    J, _, solved = _jacobian(st.problem, st.layout, unravel(jnp.asarray(f)))
+    assert np.all(np.asarray(solved))
+
+    def res(x):
+        return np.asarray(residual_jit(unravel(jnp.asarray(x)), (st.problem, st.layout)))
+
+    h = 0.1 * D
+    Jfd = np.stack(
+        [
+            (res(f + h[j] * e) - res(f - h[j] * e)) / (2 * h[j])
+            for j, e in enumerate(np.eye(f.size))
+        ],
+        axis=1,
+    )
+    err = np.linalg.norm(np.asarray(J) - Jfd, axis=0) / np.linalg.norm(Jfd, axis=0)
+    assert err.max() < 1e-6, (err.max(), st.names[int(np.argmax(err))])
+    assert {"spiral.lead[1]", "backlash.w[1]", "compliance.flex[1]"} <= set(st.names)
+
+
+def test_truncated_step_is_the_truncated_pseudo_inverse():
+    """The Gauss-Newton step (from eigh of the Gram matrix) against −pinv(A, rcond) r from
+    numpy's SVD, on unit-norm columns as the fit scales them. With an exactly dependent
+    column (dropped) and the rest well conditioned: the same step. With also a weak but
+    identifiable column (σ = 7e-5 of the largest, kept): a step that differs by rounding
+    amplified by κ² (κ = σ_max / σ of the weakest kept direction: the price of the Gram
+    matrix; an SVD would amplify by κ), so the same change of the residual, A·step, to
+    1e-7 (of ~1). Full rank: least squares."""
+    from jaxtable._calibration.fit import _truncated_step
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((200, 12))
+    A[:, 5] = A[:, 2] - 0.5 * A[:, 7]  # no information: dropped
+    r = rng.standard_normal(200)
+
+    def unit(M):
+        return M / np.linalg.norm(M, axis=0)
+
+    def pinv_step(M):
+        return -np.linalg.pinv(M, rcond=1e-6) @ r
+
+    B = unit(A)
+    np.testing.assert_allclose(np.asarray(_truncated_step(B, r, 1e-6)), pinv_step(B), atol=1e-12)
+    A[:, 9] = A[:, 3] + 1e-4 * rng.standard_normal(200)  # weak but identifiable: kept
+    B = unit(A)
+    sv = np.linalg.svd(B, compute_uv=False)
+    assert 1e-6 * sv[0] < sv[-2] < 1e-4 * sv[0] and sv[-1] < 1e-12 * sv[0]
+    step, ref = np.asarray(_truncated_step(B, r, 1e-6)), pinv_step(B)
+    kappa2 = (sv[0] / sv[-2]) ** 2
+    assert np.linalg.norm(step - ref) < 10 * np.finfo(float).eps * kappa2 * np.linalg.norm(ref)
+    np.testing.assert_allclose(B @ step, B @ ref, atol=1e-7)
+    C = np.delete(B, 5, axis=1)
+    np.testing.assert_allclose(
+        np.asarray(_truncated_step(C, r, 1e-6)),
+        -np.linalg.lstsq(C, r, rcond=None)[0],
+        rtol=1e-6,
+    )
