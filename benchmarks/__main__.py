@@ -24,7 +24,10 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results")
     args = p.parse_args(argv)
     table = jt.reference_table() if args.table is None else jt.load_table(args.table)
-    log = lambda m: print(m, file=sys.stderr)  # noqa: E731
+
+    def log(message):
+        print(message, file=sys.stderr)
+
     r = run_benchmark(table, quick=args.quick, log=log)
     if args.suite:
         log("default test suite (empty compilation cache) ...")

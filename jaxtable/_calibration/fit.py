@@ -165,7 +165,7 @@ def _weighted_residual(problem: Problem, layout: Layout, theta):
     """(residual (N·6,), solved (N,)): (reading − measured) / σ per cell (0 where not
     measured), and whether each row's forward solve succeeded."""
     model = build_model(problem, layout, theta)
-    r, solved = jax.vmap(lambda *row: _row_residual(model, *row))(*_rows(problem))
+    r, solved = jax.vmap(lambda row: _row_residual(model, *row))(_rows(problem))
     return r.reshape(-1), solved
 
 
@@ -186,14 +186,14 @@ def _residual_and_jacobian(problem, layout, unravel):
     costs 6 backward passes where forward mode pushes P tangents (P = 54 for a geometric
     fit, 164 in the bundled example's diagnosis: 10 ms per Jacobian there instead of 62)."""
 
-    def row(f, *data):
+    def row(f, data):
         r, solved = _row_residual(build_model(problem, layout, unravel(f)), *data)
         return r, (r, solved)
 
-    jac_rows = jax.vmap(jax.jacrev(row, has_aux=True), in_axes=(None, 0, 0, 0, 0, 0, 0))
+    jac_rows = jax.vmap(jax.jacrev(row, has_aux=True), in_axes=(None, 0))
 
     def evaluate(f):
-        J, (r, solved) = jac_rows(f, *_rows(problem))
+        J, (r, solved) = jac_rows(f, _rows(problem))
         return J.reshape(-1, f.shape[0]), (r.reshape(-1), solved)
 
     return evaluate
