@@ -81,9 +81,8 @@ def pose_error(actual, commanded) -> Float[ArrayLike, "... 6"]:
 
 
 def _reach_one(table, pose):
-    L = kin.leg_lengths(table, pose)
-    bend = jnp.max(kin.joint_bend(table, pose), axis=0)
-    return L, bend
+    L, base, platform = kin._lengths_and_bends(table, pose)
+    return L, jnp.maximum(base, platform)
 
 
 def reachable(table: Table, poses, *, chunk: int = 1 << 16):

@@ -87,6 +87,31 @@ def _twist_sin_cos(table: Table, pose: Float[ArrayLike, "6"]):
     return s, c
 
 
+def twist_gradients(table: Table, l: Vec3, j: Vec3) -> tuple[Vec3, Vec3]:
+    """Gradients of the twist angle β of `_twist_sin_cos` at leg vectors `l` and platform
+    axes `j` (base frame, components (6,) each): (∂β/∂l, ∂β/∂j), rad/mm and rad per unit.
+
+    With w = n×j, L = |l|: S = L w·l, C = (n·j)L² − (n·l)(j·l), dβ = (C dS − S dC)/(S² + C²),
+    ∇_l S = (w·l/L) l + L w, ∇_l C = 2(n·j) l − (j·l) n − (n·l) j, ∇_j S = L (l×n),
+    ∇_j C = L² n − (n·l) l. Closed form for the first-order budget (no autodiff tangents);
+    the tests check it against `jax.jacfwd` of `rod_rotation`."""
+    n = _columns(table.base_axes)
+    w = _cross(n, j)
+    ll = _dot(l, l)
+    L = jnp.sqrt(ll)
+    wl, nj, nl, jl = _dot(w, l), _dot(n, j), _dot(n, l), _dot(j, l)
+    S = L * wl
+    C = nj * ll - nl * jl
+    inv = 1.0 / (S * S + C * C)
+    ln = _cross(l, n)
+    grad_l = tuple(
+        (C * (wl / L * l[k] + L * w[k]) - S * (2 * nj * l[k] - jl * n[k] - nl * j[k])) * inv
+        for k in range(3)
+    )
+    grad_j = tuple((C * L * ln[k] - S * (ll * n[k] - nl * l[k])) * inv for k in range(3))
+    return grad_l, grad_j
+
+
 def rod_rotation(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "6"]:
     """Δα_i: rotation of each rod relative to its barrel since home, rad. Shape (6,).
 
@@ -156,6 +181,24 @@ def in_stroke(table: Table, lengths: Float[ArrayLike, "... 6"]) -> Bool[ArrayLik
     return (lengths >= table.stroke[0]) & (lengths <= table.stroke[1])
 
 
+def _angle(a: Vec3, b: Vec3) -> Array:
+    c = _cross(a, b)
+    return jnp.arctan2(jnp.sqrt(_dot(c, c)), _dot(a, b))
+
+
+def _lengths_and_bends(table: Table, pose: Float[ArrayLike, "6"]):
+    """(|l_i|, base bend, platform bend), (6,) each: see `joint_bend`."""
+    R = rotation_entries(pose[3:])
+    l = _legs(table, pose, R)
+    L = jnp.sqrt(_dot(l, l))
+    u = tuple(x / L for x in l)
+    l0 = _legs(table, HOME, rotation_entries(HOME[3:]))
+    L0 = jnp.sqrt(_dot(l0, l0))
+    u0 = tuple(x / L0 for x in l0)
+    up = tuple(R[0][k] * u[0] + R[1][k] * u[1] + R[2][k] * u[2] for k in range(3))  # Rᵀu
+    return L, _angle(u, u0), _angle(up, u0)
+
+
 def joint_bend(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "2 6"]:
     """U-joint bend angles from the home leg direction, rad. Shape (2, 6): (base, platform).
 
@@ -163,19 +206,12 @@ def joint_bend(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "2
     base bend is the angle between u_i(q) and u_i(0) in the base frame, the platform bend the
     angle between Rᵀu_i(q) and u_i(0) in the platform frame.
     """
-    u, _ = leg_lines(table, pose)
-    u0, _ = leg_lines(table, HOME)
-    R = rotation_matrix(pose[3:])
-    up = u @ R  # rows: Rᵀ u_i
-
-    def angle(a, b):
-        return jnp.arctan2(jnp.linalg.norm(jnp.cross(a, b), axis=-1), jnp.sum(a * b, axis=-1))
-
-    return jnp.stack([angle(u, u0), angle(up, u0)])
+    return jnp.stack(_lengths_and_bends(table, pose)[1:])
 
 
 def within_limits(table: Table, pose: Float[ArrayLike, "6"]) -> Array:
     """True when every leg length |l_i| is inside the stroke and every U-joint bend is within
     the table's joint angle limit (bool scalar)."""
-    stroke_ok = jnp.all(in_stroke(table, leg_lengths(table, pose)))
-    return stroke_ok & (jnp.max(joint_bend(table, pose)) <= table.joint_angle_limit)
+    L, base, platform = _lengths_and_bends(table, pose)
+    bend = jnp.maximum(base, platform)
+    return jnp.all(in_stroke(table, L) & (bend <= table.joint_angle_limit))

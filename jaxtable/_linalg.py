@@ -93,13 +93,14 @@ def largest_eigval_small(S: Float[ArrayLike, "n n"], squarings: int = 12) -> Flo
     return (v @ S @ v) / (v @ v)
 
 
-def cond_small(J: Float[ArrayLike, "n n"]) -> Float[ArrayLike, ""]:
+def cond_small(J: Float[ArrayLike, "n n"], J_inv=None) -> Float[ArrayLike, ""]:
     """2-norm condition number σ_max / σ_min of a square matrix, from the extreme
-    eigenvalues of JᵀJ and of its inverse."""
+    eigenvalues of JᵀJ and of its inverse ((JᵀJ)⁻¹ = J⁻¹J⁻ᵀ from `J_inv` when the caller
+    has J⁻¹, else by elimination)."""
     S = J.T @ J
     lmax = largest_eigval_small(S)
-    lmin = 1.0 / largest_eigval_small(inv_small(S))
-    return jnp.sqrt(lmax / lmin)
+    S_inv = inv_small(S) if J_inv is None else J_inv @ J_inv.T
+    return jnp.sqrt(lmax * largest_eigval_small(S_inv))
 
 
 def cholesky_small(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "n n"]:

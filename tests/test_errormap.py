@@ -5,7 +5,7 @@ import pytest
 from conftest import random_poses
 
 import jaxtable as jt
-from jaxtable._analysis.errormap import PoseList, error_map, workspace_slice
+from jaxtable._analysis.errormap import PoseList, _Histograms, error_map, workspace_slice
 from jaxtable._analysis.sensitivities import pose_sensitivity
 from jaxtable._analysis.tolerances import PARAMETER, SOURCES, Tolerances, budget_effects
 from jaxtable.cli import main
@@ -43,6 +43,21 @@ def test_chunking_does_not_change_results(table, small_map):
         summary["sources"]["total"]["trans_max_mm"], rel=1e-12
     )
     assert emap.std.shape == (9, 7, len(SOURCES) + 1, 6)
+
+
+def test_histogram_bins_by_arithmetic_equal_searchsorted():
+    """The kernel's bin index (log arithmetic) is numpy's searchsorted on the bin edges: equal
+    away from an edge, at most one bin off exactly at one; 0, NaN and out-of-range values
+    land in the end bins."""
+    h = _Histograms((1,))
+    rng = np.random.default_rng(3)
+    x = 10.0 ** rng.uniform(-10, 4, 200_000)
+    k = np.asarray(_Histograms.bin_index(x))  # (a draw within rounding of an edge: p ~ 1e-7)
+    np.testing.assert_array_equal(k, np.searchsorted(h.edges, x))
+    k_edges = np.asarray(_Histograms.bin_index(h.edges))
+    assert np.abs(k_edges - np.arange(len(h.edges))).max() <= 1
+    ends = np.asarray(_Histograms.bin_index(np.array([0.0, np.nan, 1e-12, 1e6])))
+    np.testing.assert_array_equal(ends, [0, h.BINS + 1, 0, h.BINS + 1])
 
 
 def test_std_matches_general_sensitivity_path(table, small_map):

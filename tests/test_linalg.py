@@ -16,6 +16,7 @@ def test_small_kernels_match_numpy():
         )
         np.testing.assert_allclose(np.asarray(inv_small(A)) @ A, np.eye(6), atol=1e-10)
         assert abs(float(cond_small(A)) / np.linalg.cond(A) - 1) < 1e-8
+        assert abs(float(cond_small(A, np.linalg.inv(A))) / np.linalg.cond(A) - 1) < 1e-8
     # a pivot is needed: zero leading entry
     A = np.array([[0.0, 1.0], [1.0, 0.0]])
     np.testing.assert_allclose(np.asarray(solve_small(A, np.eye(2))), A)

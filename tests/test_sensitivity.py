@@ -9,10 +9,11 @@ from conftest import random_poses
 
 import jaxtable as jt
 from jaxtable._analysis.sensitivities import (
+    BUDGET_WRT,
     GEOMETRY_42,
+    budget_jacobians_one,
     jacobians_one,
     paper_error_jacobian,
-    per_leg_jacobians_one,
     pose_sensitivity,
 )
 from jaxtable._analysis.tolerances import budget_effects
@@ -103,22 +104,55 @@ def test_sensitivity_equals_jacfwd_through_newton_solve(table):
     np.testing.assert_allclose(np.asarray(J)[:, 6:], np.asarray(Jh), rtol=1e-9, atol=1e-15)
 
 
-def test_per_leg_compressed_jacobian_equals_general(table):
-    pose = jnp.asarray(random_poses(1, seed=4)[0])
-    wrt = ("base_joints", "platform_joints", "zero_lengths", "lead_scale.eps", "spiral.lead")
-    eff = budget_effects(table)
-    Jq, Jt = jacobians_one(table, eff, pose, wrt)
-    Jq2, per_leg = per_leg_jacobians_one(table, eff, pose, wrt)
-    np.testing.assert_allclose(np.asarray(Jq2), np.asarray(Jq), rtol=1e-14, atol=1e-15)
-    k = 0
-    for d in per_leg:
-        m = d.shape[1]
-        block = np.asarray(Jt)[:, k : k + 6 * m].reshape(6, 6, m)
-        for i in range(6):
-            np.testing.assert_allclose(block[i, i], np.asarray(d)[i], rtol=1e-13, atol=1e-16)
-            off = np.delete(block[i], i, axis=0)
-            assert np.abs(off).max() == 0.0  # leg i's residual ignores other legs' params
-        k += 6 * m
+def _perturbed_table(table, seed):
+    """The reference table with joints moved by ~1 mm, axes tilted off the legs' normals and
+    two left-hand screws: a geometry with no symmetry for the closed forms to lean on."""
+    rng = np.random.default_rng(seed)
+    axes = np.asarray(table.base_axes) + 0.2 * rng.normal(size=(6, 3))
+    paxes = np.asarray(table.platform_axes) + 0.2 * rng.normal(size=(6, 3))
+    return jt.replace(
+        table,
+        base_joints=np.asarray(table.base_joints) + rng.normal(size=(6, 3)),
+        platform_joints=np.asarray(table.platform_joints) + rng.normal(size=(6, 3)),
+        base_axes=axes / np.linalg.norm(axes, axis=1, keepdims=True),
+        platform_axes=paxes / np.linalg.norm(paxes, axis=1, keepdims=True),
+        hand=[1.0, -1.0, 1.0, 1.0, -1.0, 1.0],
+    )
+
+
+@pytest.mark.parametrize("perturbed", [False, True])
+def test_closed_form_budget_blocks_equal_autodiff(table, perturbed):
+    """The error map's closed-form blocks (pose Jacobian in (t, ω), per-leg parameter gains,
+    command, spiral) against `jax.jacfwd` of the model's residual through `jacobians_one`."""
+    from jaxtable._kinematics import spiral_extension
+    from jaxtable._model import inverse_extension
+    from jaxtable._rotation import euler_rate_matrix
+
+    t = _perturbed_table(table, 7) if perturbed else table
+    eff = budget_effects(t)
+    widths = [3, 3, 1, 1, 1]  # columns per leg of each BUDGET_WRT leaf
+    for pose in random_poses(4, seed=11):
+        pose = jnp.asarray(pose)
+        s, K, gains, spiral = (np.asarray(x) for x in budget_jacobians_one(t, pose))
+        Jq, Jt = (np.asarray(x) for x in jacobians_one(t, eff, pose, BUDGET_WRT))
+        Jq_cf = K.copy()
+        Jq_cf[:, 3:] = K[:, 3:] @ np.asarray(euler_rate_matrix(pose[3:]))
+        np.testing.assert_allclose(Jq_cf, Jq, rtol=0, atol=1e-12 * np.abs(Jq).max())
+        k = 0
+        for col, m in enumerate(widths):
+            block = Jt[:, k : k + 6 * m].reshape(6, 6, m)  # residual leg, parameter leg, comp
+            k += 6 * m
+            for i in range(6):
+                assert gains[i, col] == pytest.approx(np.sum(block[i, i] ** 2), rel=1e-12)
+                assert np.abs(np.delete(block[i], i, axis=0)).max() == 0.0  # legs independent
+        s_ref, _ = inverse_extension(t, {"spiral": eff["spiral"]}, pose)
+        np.testing.assert_allclose(s, np.asarray(s_ref), rtol=0, atol=1e-10)
+        np.testing.assert_allclose(spiral, np.asarray(spiral_extension(t, pose)), atol=1e-13)
+        # the spiral's share of K is far above the tolerance: a wrong twist gradient fails
+        rigid = jt.replace(t, lead=0.0)
+        _, K_rigid, gains_rigid, _ = (np.asarray(x) for x in budget_jacobians_one(rigid, pose))
+        assert np.abs(K_rigid - K).max() > 1e-6 * np.abs(K).max()
+        assert np.abs(gains_rigid[:, :2] - gains[:, :2]).max() > 1e-6
 
 
 def test_effect_parameters_and_unknown_names(table):

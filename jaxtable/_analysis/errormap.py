@@ -16,52 +16,70 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from .. import _params as params
 from .._batch import run_batch
 from .._errors import require_x64
 from .._forward import platform_radius
-from .._kinematics import spiral_extension, within_limits
+from .._kinematics import within_limits
 from .._linalg import cond_small, inv_small
-from .._model import inverse_extension
-from .._rotation import ARCSEC_PER_RAD, euler_rate_matrix
+from .._rotation import ARCSEC_PER_RAD, euler_rate_inverse, euler_rate_matrix
 from .._table import Table
-from .sensitivities import per_leg_jacobians_one
-from .tolerances import PARAMETER, SOURCES, Tolerances, budget_effects
+from .sensitivities import BUDGET_WRT, budget_jacobians_one
+from .tolerances import PARAMETER, SOURCES, Tolerances
 from .workspaces import Grid, PoseList, workspace_slice
 
-BUDGET_WRT = params.GEOMETRY + ("lead_scale.eps", "spiral.lead")
 TARGET_MM = 0.2  # the paper's design target: translation error within ±0.2 mm
 
 
 def budget_one(table: Table, sigmas: tuple, pose, with_cond: bool = True):
     """Linear budget at one commanded pose; see the module docstring. `sigmas`: σ per source
     in model units, ordered as `SOURCES`. `with_cond=False`: cond is NaN (the 2-norm
-    condition number costs three times the rest of the budget)."""
-    effects = budget_effects(table)
-    # the lead-scale error is zero at the nominal: it adds nothing to the command, so the
-    # command is explicit (no Newton iteration for an s-dependent effect)
-    s, _ = inverse_extension(table, {"spiral": effects["spiral"]}, pose)
-    Jq, per_leg = per_leg_jacobians_one(table, effects, pose, BUDGET_WRT, s)
-    # δq = −Jq⁻¹ D δθ with D block-diagonal by leg: column (i, c) of δq/δθ is
-    # −Jq⁻¹[:, i] · d_ic, so σ_q² = σ² Σ_i (Jq⁻¹[:, i])² Σ_c d_ic².
-    Jinv = inv_small(Jq)  # plain jnp: see _linalg on LAPACK deadlocks
-    Jinv = jnp.concatenate([Jinv[:3], euler_rate_matrix(pose[3:]) @ Jinv[3:]])
-    leg_gain = dict(zip(BUDGET_WRT, (jnp.sum(d**2, axis=1) for d in per_leg)))
-    rows = [
-        sigma * jnp.sqrt(Jinv**2 @ leg_gain[PARAMETER[src]]) for src, sigma in zip(SOURCES, sigmas)
-    ]
-    std = jnp.stack(rows)
+    condition number costs more than the rest of the budget)."""
+    # closed-form blocks (sensitivities.budget_jacobians_one): the lead-scale error is zero
+    # at the nominal and adds nothing to the command, so the command is explicit
+    _, K, gains, spiral = budget_jacobians_one(table, pose)
+    # δ(t, ω) = −K⁻¹ D δθ with D block-diagonal by leg: column (i, c) of the pose error is
+    # −K⁻¹[:, i] · d_ic, so σ² = σ_src² Σ_i (K⁻¹[:, i])² Σ_c d_ic² (= gains[i, param]).
+    Kinv = inv_small(K)  # plain jnp: see _linalg on LAPACK deadlocks
+    column = [BUDGET_WRT.index(PARAMETER[src]) for src in SOURCES]
+    std = jnp.asarray(sigmas)[:, None] * jnp.sqrt(Kinv**2 @ gains[:, column]).T
     std = jnp.concatenate([std, jnp.sqrt(jnp.sum(std**2, axis=0))[None]])
-    bias = Jinv @ spiral_extension(table, pose)  # not compensating = an L0 error of Δl2
-    scale = jnp.concatenate([jnp.ones(3), jnp.full(3, 1.0 / platform_radius(table))])
-    cond = cond_small(Jq * scale) if with_cond else jnp.asarray(jnp.nan)
+    bias = Kinv @ spiral  # not compensating = an L0 error of Δl2
+    if with_cond:  # of the Euler-angle Jacobian K diag(I, E), angles scaled by the radius ρ
+        rho = platform_radius(table)
+        J = jnp.concatenate([K[:, :3], K[:, 3:] @ euler_rate_matrix(pose[3:]) / rho], axis=1)
+        J_inv = jnp.concatenate([Kinv[:3], rho * euler_rate_inverse(pose[3:]) @ Kinv[3:]])
+        cond = cond_small(J, J_inv)
+    else:
+        cond = jnp.asarray(jnp.nan)
     reach = within_limits(table, pose)
     return std, bias, cond, reach
 
 
+def _rms(std, bias, cols: slice):
+    """RMS over the pose components `cols` of each source's σ, (..., n_sources + 1), and of
+    the total with the spiral bias added (uncompensated), (...). numpy or jax arrays."""
+    v = (std[..., cols] ** 2).sum(-1)
+    return v**0.5, (v[..., -1] + (bias[..., cols] ** 2).sum(-1)) ** 0.5
+
+
+def _margins(std, bias):
+    """Worst translation component of 2σ (compensated) and of |bias| + 2σ (uncompensated),
+    mm, (...) each. numpy or jax arrays."""
+    m = 2 * std[..., -1, :3]
+    return m.max(-1), (m + abs(bias[..., :3])).max(-1)
+
+
 def _budget_row(shared, pose):
+    """`budget_one` and what the streamed summary needs of it: the 2 × (n_sources + 2) RMS
+    errors (translation mm, rotation arcsec) with their histogram bins, and whether the two
+    target margins are met; the host then only counts bins."""
     table, sigmas, with_cond = shared
-    return budget_one(table, sigmas, pose, with_cond)
+    std, bias, cond, reach = budget_one(table, sigmas, pose, with_cond)
+    tc, tu = _rms(std, bias, slice(0, 3))
+    rc, ru = _rms(std, bias, slice(3, 6))
+    values = jnp.stack([jnp.append(tc, tu), jnp.append(rc, ru) * ARCSEC_PER_RAD])
+    ok = jnp.stack(_margins(std, bias)) <= TARGET_MM
+    return std, bias, cond, reach, values, _Histograms.bin_index(values), ok
 
 
 @dataclass(frozen=True)
@@ -79,42 +97,52 @@ class ErrorMap:
     def translation(self, compensated: bool = True) -> np.ndarray:
         """(..., n_sources + 1) RMS translation error per source (mm); with
         `compensated=False` the total row includes the spiral bias."""
-        t = np.sqrt(np.sum(self.std[..., :3] ** 2, axis=-1))
-        if not compensated:
-            t[..., -1] = np.sqrt(t[..., -1] ** 2 + np.sum(self.bias[..., :3] ** 2, axis=-1))
-        return t
+        return self._rms(slice(0, 3), compensated)
 
     def rotation(self, compensated: bool = True) -> np.ndarray:
         """(..., n_sources + 1) RMS rotation error per source (rad)."""
-        r = np.sqrt(np.sum(self.std[..., 3:] ** 2, axis=-1))
+        return self._rms(slice(3, 6), compensated)
+
+    def _rms(self, cols, compensated):
+        per_source, uncompensated = _rms(self.std, self.bias, cols)
         if not compensated:
-            r[..., -1] = np.sqrt(r[..., -1] ** 2 + np.sum(self.bias[..., 3:] ** 2, axis=-1))
-        return r
+            per_source[..., -1] = uncompensated
+        return per_source
 
     def target_margin(self, compensated: bool = True) -> np.ndarray:
         """(...,) worst translation component |bias| + 2σ (mm): ≤ 0.2 meets the paper's
         ±0.2 mm design target at about 95 % confidence per component."""
-        m = 2 * self.std[..., -1, :3]
-        if not compensated:
-            m = m + np.abs(self.bias[..., :3])
-        return m.max(axis=-1)
+        return _margins(self.std, self.bias)[0 if compensated else 1]
 
 
-class _Histogram:
-    """Streaming log-binned histogram for percentiles of positive values."""
+class _Histograms:
+    """Streaming log-binned histograms of positive values (one per row and column of the
+    per-pose `values`), for percentiles: `bin_index` runs inside the kernel, `add` counts."""
 
-    def __init__(self, lo=1e-9, hi=1e3, bins=3000):
-        self.edges = np.geomspace(lo, hi, bins + 1)
-        self.counts = np.zeros(bins + 2, dtype=np.int64)
-        self.max = 0.0
+    LO, HI, BINS = 1e-9, 1e3, 3000
 
-    def add(self, x):
-        if x.size:
-            self.counts += np.bincount(np.searchsorted(self.edges, x), minlength=self.counts.size)
-            self.max = max(self.max, float(x.max()))
+    def __init__(self, shape: tuple):
+        self.edges = np.geomspace(self.LO, self.HI, self.BINS + 1)
+        self.counts = np.zeros(shape + (self.BINS + 2,), dtype=np.int64)
+        self.max = np.zeros(shape)
 
-    def percentile(self, q):
-        c = np.cumsum(self.counts)
+    @classmethod
+    def bin_index(cls, x):
+        """`np.searchsorted(edges, x)` (the number of edges below x; 0 below LO, BINS + 1
+        above HI or NaN) by arithmetic, as int32: jnp, for inside the kernel."""
+        k = jnp.ceil(jnp.log(x / cls.LO) * (cls.BINS / np.log(cls.HI / cls.LO)))
+        return jnp.where(jnp.isnan(k), cls.BINS + 1, jnp.clip(k, 0, cls.BINS + 1)).astype(jnp.int32)
+
+    def add(self, values, bins):
+        """Count one chunk: `values` and their `bins`, (n, *shape)."""
+        if len(values):
+            m = self.counts.shape[-1]
+            flat = (bins + m * np.arange(bins[0].size).reshape(bins.shape[1:])).ravel()
+            self.counts += np.bincount(flat, minlength=self.counts.size).reshape(self.counts.shape)
+            self.max = np.maximum(self.max, values.max(axis=0))
+
+    def percentile(self, index: tuple, q) -> float:
+        c = np.cumsum(self.counts[index])
         if c[-1] == 0:
             return float("nan")
         k = int(np.searchsorted(c, q / 100 * c[-1]))
@@ -148,9 +176,9 @@ def error_map(
         grid = PoseList(np.asarray(grid, dtype=float).reshape(-1, 6))
     sigmas = tuple(tolerances.sigma(s) for s in SOURCES)
     names = list(SOURCES) + ["total", "total (spiral uncompensated)"]
-    hist_t = {n: _Histogram() for n in names}
-    hist_r = {n: _Histogram() for n in names}
-    n_reach = n_ok_c = n_ok_u = 0
+    hist = _Histograms((2, len(names)))  # rows: translation mm, rotation arcsec
+    n_reach = 0
+    n_ok = np.zeros(2, dtype=np.int64)  # compensated, uncompensated
     cond_max = 0.0 if cond else float("nan")
     out = [] if keep else None
     n = len(grid)
@@ -158,42 +186,32 @@ def error_map(
         range(0, n, chunk), disable=not progress, unit="chunk", desc=f"error map, {n} poses"
     ):
         p = grid.poses(start, start + chunk)
-        std, bias, kappa, reach = (
-            np.asarray(x)
-            for x in run_batch(_budget_row, (table, sigmas, bool(cond)), p, chunk=chunk)
+        std, bias, kappa, reach, values, bins, ok = run_batch(
+            _budget_row, (table, sigmas, bool(cond)), p, chunk=chunk
         )
+        reach = np.asarray(reach)
         if keep:
-            out.append(
-                (std.astype(np.float32), bias.astype(np.float32), kappa.astype(np.float32), reach)
-            )
-        part = ErrorMap(grid, std[reach], bias[reach], kappa[reach], reach[reach])
-        tc, tu = part.translation(True), part.translation(False)
-        rc, ru = part.rotation(True), part.rotation(False)
-        for k, name in enumerate(SOURCES + ("total",)):
-            hist_t[name].add(tc[:, k])
-            hist_r[name].add(rc[:, k] * ARCSEC_PER_RAD)
-        hist_t[names[-1]].add(tu[:, -1])
-        hist_r[names[-1]].add(ru[:, -1] * ARCSEC_PER_RAD)
+            out.append(tuple(np.asarray(x, np.float32) for x in (std, bias, kappa)) + (reach,))
+        hist.add(np.asarray(values)[reach], np.asarray(bins)[reach])
         n_reach += int(reach.sum())
-        n_ok_c += int((part.target_margin(True) <= TARGET_MM).sum())
-        n_ok_u += int((part.target_margin(False) <= TARGET_MM).sum())
+        n_ok += np.asarray(ok)[reach].sum(axis=0)
         if cond and reach.any():
-            cond_max = max(cond_max, float(kappa[reach].max()))
+            cond_max = max(cond_max, float(np.asarray(kappa)[reach].max()))
     summary = {
         "poses": n,
         "reachable": n_reach,
         "cond_max": cond_max,
         "target_mm": TARGET_MM,
-        "meets_target_compensated": n_ok_c / max(n_reach, 1),
-        "meets_target_uncompensated": n_ok_u / max(n_reach, 1),
+        "meets_target_compensated": int(n_ok[0]) / max(n_reach, 1),
+        "meets_target_uncompensated": int(n_ok[1]) / max(n_reach, 1),
         "sources": {
             name: {
-                "trans_max_mm": hist_t[name].max,
-                "trans_p95_mm": hist_t[name].percentile(95),
-                "rot_max_arcsec": hist_r[name].max,
-                "rot_p95_arcsec": hist_r[name].percentile(95),
+                "trans_max_mm": float(hist.max[0, k]),
+                "trans_p95_mm": hist.percentile((0, k), 95),
+                "rot_max_arcsec": float(hist.max[1, k]),
+                "rot_p95_arcsec": hist.percentile((1, k), 95),
             }
-            for name in names
+            for k, name in enumerate(names)
         },
     }
     if not keep:

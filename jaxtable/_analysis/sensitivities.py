@@ -20,10 +20,20 @@ from .. import _params as params
 from .._batch import flatten_batch, run_batch
 from .._effects import Effects, resolve_effects
 from .._errors import check_finite_poses, require_x64
-from .._kinematics import leg_lines
+from .._kinematics import (
+    HOME,
+    _columns,
+    _cross,
+    _dot,
+    _legs,
+    _rotate,
+    leg_lines,
+    rod_rotation,
+    twist_gradients,
+)
 from .._linalg import solve_small
 from .._model import inverse_extension, length_residual
-from .._rotation import euler_rate_matrix, rotation_matrix
+from .._rotation import euler_rate_matrix, rotation_entries, rotation_matrix
 from .._table import Table
 
 GEOMETRY_42 = params.PAPER_42  # the paper's e_p order (kept for existing imports)
@@ -76,37 +86,53 @@ def jacobians_one(table, effects, pose, wrt):
     return Jq, Jt
 
 
-def per_leg_jacobians_one(table, effects, pose, wrt, s=None):
-    """(∂r/∂q (6, 6), [∂r_i/∂θ_i (6, m) per name]) for per-leg parameters (leaves of shape
-    (6,) or (6, m)), at one commanded pose.
+BUDGET_WRT = params.GEOMETRY + ("lead_scale.eps", "spiral.lead")
+"""The parameters of the tolerance budget, in the column order of `budget_jacobians_one`."""
 
-    Leg i's residual depends only on leg i's parameters, so one forward-mode tangent per
-    column of a leaf (perturbing that column on every leg at once) gives all of them: m
-    tangents per leaf instead of 6·m. Row i of the result is ∂r_i/∂θ_i. Same maths as
-    `jacobians_one`, fewer tangents; the tests check they agree. `s`: the nominal extensions
-    when the caller has them (default: the inverse solve)."""
-    model = (table, {} if effects is None else dict(effects))
-    leaves = [jnp.asarray(_get(model, n), dtype=jnp.float64) for n in wrt]
-    widths = [1 if x.ndim == 1 else x.shape[1] for x in leaves]
-    offsets = np.cumsum([0] + widths)
 
-    def perturbed(c):
-        new = []
-        for x, w, o in zip(leaves, widths, offsets):
-            d = c[o : o + w]
-            new.append(x + (d[0] if x.ndim == 1 else d[None, :]))
-        return params.replace(model[0], model[1], dict(zip(wrt, new)))
+def budget_jacobians_one(table: Table, pose: Float[ArrayLike, "6"]):
+    """Closed-form first-order blocks of the budget model at one commanded pose: rigid legs,
+    the table's own spiral term (lead `table.signed_lead`) and a zero lead-scale error
+    (`tolerances.budget_effects`), r_i = |l_i| − L0_i − s_i − c_i Δα_i − ε_i s_i with
+    c_i = lead_i/(2π) and s the nominal (compensated) command.
 
-    def residual(c, q, s):
-        t, eff = perturbed(c)
-        return length_residual(t, resolve_effects(t, effects if effects is None else eff), q, s)
+    Returns (s (6,) mm, K (6, 6), gains (6, 5), spiral (6,) mm):
+    - K = ∂r/∂(t, ω): row i is [u_i − c_i g_i, (R a_i)×(u_i − c_i g_i) − c_i j_i×h_i], with
+      u_i the unit leg, g_i = ∂β_i/∂l_i, h_i = ∂β_i/∂j_i (`twist_gradients`), ω the small
+      rotation vector in the base frame (the Euler-angle Jacobian is K with its last three
+      columns times `euler_rate_matrix`);
+    - gains[i, k] = Σ_c (∂r_i/∂θ_ic)² over the components of leg i's parameter `BUDGET_WRT[k]`:
+      b_i: |u_i − c_i(g_i − g0_i)|²; a_i^p: |Rᵀ(u_i − c_i g_i) + c_i g0_i|² (g0 at home, where
+      the twist is measured from); L0_i: 1; ε_i: s_i²; lead_i: (Δα_i/2π)²;
+    - spiral: Δl2_i = c_i Δα_i, the passive extension the command compensates.
 
-    if s is None:
-        s, _ = inverse_extension(table, resolve_effects(table, effects), pose)
-    c0 = jnp.zeros(int(offsets[-1]))
-    Jq = jax.jacfwd(residual, argnums=1)(c0, pose, s)
-    Jc = jax.jacfwd(residual, argnums=0)(c0, pose, s)
-    return Jq, [Jc[:, o : o + w] for w, o in zip(widths, offsets)]
+    Leg i's residual depends only on leg i's parameters, which is why a gain per leg and
+    parameter is all the budget needs. The same derivatives as `jacobians_one` on
+    `budget_effects` (the tests compare them), without autodiff tangents: the error map's
+    kernel runs several times faster."""
+    R = rotation_entries(pose[3:])
+    l = _legs(table, pose, R)
+    ra = _rotate(R, _columns(table.platform_joints))
+    j = _rotate(R, _columns(table.platform_axes))
+    l0 = _legs(table, HOME, rotation_entries(HOME[3:]))
+    g, h = twist_gradients(table, l, j)
+    g0, _ = twist_gradients(table, l0, _columns(table.platform_axes))
+    L = jnp.sqrt(_dot(l, l))
+    turns = rod_rotation(table, pose) / (2 * jnp.pi)
+    spiral = table.signed_lead * turns
+    s = L - table.zero_lengths - spiral
+    c = table.signed_lead / (2 * jnp.pi)
+    dt = tuple(l[k] / L - c * g[k] for k in range(3))
+    m1, m2 = _cross(ra, dt), _cross(j, h)
+    dw = tuple(m1[k] - c * m2[k] for k in range(3))
+    db = tuple(-dt[k] - c * g0[k] for k in range(3))
+    da = tuple(R[0][k] * dt[0] + R[1][k] * dt[1] + R[2][k] * dt[2] + c * g0[k] for k in range(3))
+    K = jnp.stack(dt + dw, axis=1)
+    gains = jnp.stack(
+        [_dot(db, db), _dot(da, da), jnp.ones(6), s * s, turns * turns],
+        axis=1,
+    )
+    return s, K, gains, spiral
 
 
 def sensitivity_one(table, effects, pose, wrt, rotation_vector: bool):
