@@ -15,10 +15,13 @@ from jaxtyping import ArrayLike, Float
 
 def lu_small(A: Float[ArrayLike, "n n"]):
     """PA = LU with partial pivoting, unrolled over the n columns. Returns (LU, perm): the
-    unit-lower multipliers below the diagonal, U on and above it; `perm` the row order.
+    unit-lower multipliers below the diagonal, U on and above it; `perm` the row order
+    (as floats).
 
     Row swaps are written as one-hot arithmetic rather than indexed updates, so under `vmap`
-    the whole factorisation stays element-wise (no gathers or scatters)."""
+    the whole factorisation stays element-wise (no gathers or scatters): inside the forward
+    solve's Newton loop a gather of the pivot row made forward kinematics 25 % slower, though
+    the factorisation alone runs 1.7× faster that way (6×6, batches of 8192)."""
     n = A.shape[0]
     rows = jnp.arange(n)
     perm = rows.astype(A.dtype)
@@ -39,11 +42,14 @@ def lu_small(A: Float[ArrayLike, "n n"]):
 
 
 def lu_solve_small(LU, perm, B: Float[ArrayLike, "n k"]) -> Float[ArrayLike, "n k"]:
-    """Solve A X = B from `lu_small(A)`; linear in B (so it transposes for reverse mode)."""
+    """Solve A X = B from `lu_small(A)`; linear in B (so it transposes for reverse mode).
+
+    B's rows are permuted by index (one gather under `vmap`): the one-hot product it replaces
+    was a reduction over rows that cost twice the factorisation in a 6×6 inverse; forward
+    kinematics runs 15–28 % faster with the gather (paired runs, 10⁶ poses)."""
     n = LU.shape[0]
     rows = jnp.arange(n)
-    P = (perm[:, None] == rows[None, :]).astype(B.dtype)
-    X = jnp.sum(P[:, :, None] * B[None, :, :], axis=1)
+    X = jnp.asarray(B)[perm.astype(jnp.int32)]
     for k in range(n):
         X = X - jnp.where(rows > k, LU[:, k], 0.0)[:, None] * X[k][None, :]
     for k in range(n - 1, -1, -1):
