@@ -218,6 +218,12 @@ class ForwardResult(eqx.Module):
         return jax.tree.leaves(self.result)[0]
 
 
+FORWARD_CHUNK = 1 << 13
+"""Default chunk of the forward solve: its Newton loop keeps the 6×6 Jacobians and the
+elimination of a whole chunk live, which at 8192 poses stays in cache (10⁶ poses on 2
+cores: 2.2×10⁵ poses/s against 1.6–1.9×10⁵ with 65536; 2048–16384 within 10 %)."""
+
+
 def _forward_row(shared, row):
     """(pose, result, steps, residual) for one command (the row function of
     `forward_solve`): shared = (table, effects, options, guess or None, context or None),
@@ -238,7 +244,7 @@ def forward_solve(
     nominal: Table | None = None,
     context: Context | None = None,
     options: ForwardOptions = ForwardOptions(),
-    chunk: int = 1 << 16,
+    chunk: int = FORWARD_CHUNK,
 ) -> ForwardResult:
     """Forward kinematics without raising: the pose and a status for every command.
 
@@ -283,7 +289,7 @@ def forward(
     nominal: Table | None = None,
     context: Context | None = None,
     options: ForwardOptions = ForwardOptions(),
-    chunk: int = 1 << 16,
+    chunk: int = FORWARD_CHUNK,
 ) -> Float[ArrayLike, "... 6"]:
     """Pose (..., 6) the table reaches for commanded joint-to-joint lengths (..., 6), mm.
 
