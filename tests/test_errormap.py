@@ -60,6 +60,38 @@ def test_histogram_bins_by_arithmetic_equal_searchsorted():
     np.testing.assert_array_equal(ends, [0, h.BINS + 1, 0, h.BINS + 1])
 
 
+def test_streamed_summary_equals_the_kept_map(table):
+    """The summary counted from the kernel's bins (in chunks) against numpy statistics of the
+    kept per-pose map, over reachable poses only (a third of the poses are out of reach)."""
+    poses = random_poses(3000, seed=8)
+    poses[::3] *= 3.0
+    emap, summary = error_map(table, Tolerances(), PoseList(poses), chunk=512)
+    ok = emap.reachable
+    assert 0 < ok.sum() < len(ok) and summary["reachable"] == ok.sum()
+    names = list(SOURCES) + ["total", "total (spiral uncompensated)"]
+    t = np.column_stack([emap.translation(True)[ok], emap.translation(False)[ok, -1]])
+    r = np.column_stack([emap.rotation(True)[ok], emap.rotation(False)[ok, -1]]) * 206264.806
+    edges = np.geomspace(1e-9, 1e3, 3001)  # the summary's log bins: 1e-9..1e3, 3000 bins
+
+    def p95_of_bins(x):  # upper edge of the bin holding the 95th percentile
+        counts = np.bincount(np.searchsorted(edges, x), minlength=3002)
+        k = np.searchsorted(np.cumsum(counts), 0.95 * len(x))
+        return edges[min(max(k, 1), 3000)]
+
+    for k, name in enumerate(names):
+        got = summary["sources"][name]
+        for x, key in ((t[:, k], "trans"), (r[:, k], "rot")):
+            unit = "mm" if key == "trans" else "arcsec"
+            assert got[f"{key}_max_{unit}"] == pytest.approx(x.max(), rel=1e-6)  # map: float32
+            p95 = got[f"{key}_p95_{unit}"]
+            assert p95 == pytest.approx(p95_of_bins(x.astype(float)), rel=1e-12)
+            q = np.percentile(x, [94, 96])  # and it is a 95th percentile, to a bin's width
+            assert q[0] <= p95 <= q[1] * edges[1] / edges[0]
+    for compensated, key in ((True, "compensated"), (False, "uncompensated")):
+        frac = np.mean(emap.target_margin(compensated)[ok] <= 0.2)
+        assert summary[f"meets_target_{key}"] == pytest.approx(frac, abs=1.5 / ok.sum())
+
+
 def test_std_matches_general_sensitivity_path(table, small_map):
     """σ per source from the per-leg compressed kernel = σ·‖row of dq/dθ‖ from the general
     autodiff path (pose_sensitivity), source by source."""

@@ -8,6 +8,10 @@ Per pose (one-pose function `budget_one`, batched with vmap):
   (linearised: J⁻¹ Δl2; the exact value is within ~1 % of it, see studies/paper_spiral.py);
 - `cond`: condition number of the kinematic Jacobian (angles scaled by the platform radius);
 - `reachable`: legs inside the stroke and U-joints within their bend limit.
+
+The sensitivities are closed form (`sensitivities.budget_jacobians_one`); the streamed
+summary's RMS errors and their histogram bins are computed per pose in the same kernel, so
+the host only counts bins.
 """
 
 from dataclasses import dataclass
@@ -160,7 +164,7 @@ def error_map(
     cond: bool = True,
 ):
     """Propagate `tolerances` over every pose of `grid` in chunks of `chunk` poses.
-    `cond=False` skips the condition number (NaN in the map and the summary): three quarters
+    `cond=False` skips the condition number (NaN in the map and the summary): four fifths
     of the work per pose, and no part of the budget.
 
     Returns (ErrorMap or None when `keep=False`, summary dict). The summary streams over the
