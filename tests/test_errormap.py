@@ -93,7 +93,7 @@ def test_streamed_summary_equals_the_kept_map(table):
 
 
 def test_std_matches_general_sensitivity_path(table, small_map):
-    """σ per source from the per-leg compressed kernel = σ·‖row of dq/dθ‖ from the general
+    """σ per source from the closed-form kernel = σ·‖row of dq/dθ‖ from the general
     autodiff path (pose_sensitivity), source by source."""
     grid, (emap, _) = small_map
     poses = grid.poses()[::7]
