@@ -4,6 +4,7 @@ Every function takes poses of shape (..., 6) = (x, y, z, roll, pitch, yaw) in mm
 (any leading dims, float64) and returns per-leg arrays of shape (..., 6).
 """
 
+import dataclasses
 import warnings
 
 import equinox as eqx
@@ -264,6 +265,8 @@ def forward_solve(
         if guess.ndim > 1:
             guess = jnp.broadcast_to(guess.reshape(-1, 6), (n, 6))
     shared_guess, row_guess = (guess, None) if guess.ndim == 1 else (None, guess)
+    if shared_guess is not None:  # one first step for the batch (see ForwardOptions)
+        options = dataclasses.replace(options, peel_first_step=True)
     shared_ctx, row_ctx = split_context(n, context)
     out = run_batch(
         _forward_row,

