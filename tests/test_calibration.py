@@ -97,12 +97,23 @@ def test_shifted_frame_and_two_sessions_calibrate_as_well(table):
         assert v < 1.2 * NOISE[c], c
 
 
+def _check_redundancy(cal):
+    """The fit's redundancy numbers (from its identifiability SVD) = `noise.redundancy` of
+    its Jacobian, and they sum to the degrees of freedom (observations − rank)."""
+    from jaxtable._calibration.noise import redundancy
+
+    np.testing.assert_allclose(cal.redundancy, redundancy(cal.jacobian), rtol=0, atol=1e-12)
+    assert cal.redundancy.sum() == pytest.approx(cal.dof, abs=1e-8)
+    assert np.all(cal.redundancy[~np.any(cal.jacobian != 0, axis=1)] == 0)
+
+
 def test_point_tracker_with_target_offset(table):
     true = perturb_table(table, 8)
     target = (30.0, -20.0, 80.0, 0.0, 0.0, 0.0)
     fit = simulate(table, true, plan_random(80, 8), point_tracker(), frame=FRAME, target=target)
     cal = calibrate(table, fit)
     assert cal.converged and not cal.unidentifiable
+    _check_redundancy(cal)  # three of six columns measured: unused cells have r = 0
     assert_within(cal, "target", target)
     assert_within(cal, "frame[1]", FRAME)
     held = simulate(
@@ -120,6 +131,7 @@ def test_x_interferometer_reports_unidentifiable_directions(table):
     cal = calibrate(table, data)
     assert len(cal.unidentifiable) >= 20
     assert np.isinf(cal.std).sum() >= 20
+    _check_redundancy(cal)  # rank-deficient: the hat matrix of the kept directions
     text = cal.report()
     assert "cannot determine" in text and "zero length L0" in text
     assert cal.rms_after["x"] < 2 * interferometer().noise[0]  # it still fits the data

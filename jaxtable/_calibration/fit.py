@@ -36,7 +36,6 @@ from .instruments import observe
 from .measurements import Measurements
 from .noise import NoiseEstimate, NoiseModel, group_scales, noise_model
 from .noise import estimate as noise_estimate
-from .noise import redundancy as noise_redundancy
 
 JOINTS = params.JOINTS
 COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
@@ -411,6 +410,9 @@ class Calibration:
     residual: np.ndarray | None = None  # (N, 6) weighted residuals after the fit
     covariance: np.ndarray | None = None
     jacobian: np.ndarray | None = None  # (N·6, P) weighted residual Jacobian, free columns
+    # (N·6,) redundancy numbers 1 − H_ii of the fit's hat matrix (`noise.redundancy` of
+    # `jacobian`, from the identifiability analysis's SVD; 0 for observations not used)
+    redundancy: np.ndarray | None = None
     # (N·6, P_all): the same over every parameter of the set-up (`Setup.names`), frozen ones
     # included: what freeing a parameter would add (the discovery dictionary's screening)
     jacobian_full: np.ndarray | None = None
@@ -799,7 +801,7 @@ def fit(
         w = np.where(groups >= 0, base / scale[np.maximum(groups, 0)], 0.0)
         cal = _fit_once(st, free_mask, use, w, theta0=start, **kw)
         iterations += 1
-        red = noise_redundancy(cal.jacobian, identifiability_tol)
+        red = cal.redundancy  # = noise.redundancy(cal.jacobian), without a second SVD
         s_new, red_g = group_scales(cal.residual, red, groups, cells)
         if noise != "estimate":
             break
@@ -877,6 +879,7 @@ def _fit_once(
         unident.append(
             (float(sv[k] / sv[0]), [(labels[i], float(v[i])) for i in top if abs(v[i]) > 0.05])
         )
+    red = np.where(np.any(J != 0, axis=1), 1.0 - np.sum(U[:, ok] ** 2, axis=1), 0.0)
     inv_s2 = np.where(ok, 1.0 / np.where(ok, sv, 1.0) ** 2, 0.0)
     cov = (Vt.T * inv_s2) @ Vt / np.outer(scale, scale)
     std = np.sqrt(np.diag(cov))
@@ -929,6 +932,7 @@ def _fit_once(
         covariance=cov,
         jacobian=J,
         jacobian_full=J_full,
+        redundancy=red,
     )
 
 
