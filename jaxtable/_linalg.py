@@ -84,6 +84,24 @@ def inv_small(A: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "n n"]:
     return solve_small(A, jnp.eye(A.shape[0], dtype=A.dtype))
 
 
+def matmul_small(
+    A: Float[ArrayLike, "n k"], B: Float[ArrayLike, "k ..."]
+) -> Float[ArrayLike, "n ..."]:
+    """A @ B for a small matrix A and a matrix or vector B, as a sum of k outer products
+    (element-wise code). Under `vmap`, `A @ B` is a batched dot that XLA's CPU backend runs
+    as one tiny product per batch row; this form fuses with its neighbours instead: the
+    error map's kernel (condition number: 24 products of 6×6 matrices) 8.0 → 3.4 µs a pose.
+    Not everywhere faster: `lu_small`'s one-hot row selection stays a dot (written out, forward
+    kinematics was 20 % slower)."""
+    A, B = jnp.asarray(A), jnp.asarray(B)
+    if B.ndim == 1:
+        return matmul_small(A, B[:, None])[:, 0]
+    out = A[:, 0][:, None] * B[0][None, :]
+    for k in range(1, A.shape[1]):
+        out = out + A[:, k][:, None] * B[k][None, :]
+    return out
+
+
 def largest_eigval_small(S: Float[ArrayLike, "n n"], squarings: int = 12) -> Float[ArrayLike, ""]:
     """Largest eigenvalue of a symmetric positive semi-definite matrix: repeated squaring
     (S^(2^k), normalised by its trace) isolates the dominant eigenvector, whose Rayleigh
@@ -92,20 +110,20 @@ def largest_eigval_small(S: Float[ArrayLike, "n n"], squarings: int = 12) -> Flo
     their span gives the value to that precision anyway)."""
     M = S
     for _ in range(squarings):
-        M = M @ M
+        M = matmul_small(M, M)
         M = M / jnp.trace(M)
     k = jnp.argmax(jnp.sum(M**2, axis=0))
     v = M[:, k]
-    return (v @ S @ v) / (v @ v)
+    return (v @ matmul_small(S, v)) / (v @ v)
 
 
 def cond_small(J: Float[ArrayLike, "n n"], J_inv=None) -> Float[ArrayLike, ""]:
     """2-norm condition number σ_max / σ_min of a square matrix, from the extreme
     eigenvalues of JᵀJ and of its inverse ((JᵀJ)⁻¹ = J⁻¹J⁻ᵀ from `J_inv` when the caller
     has J⁻¹, else by elimination)."""
-    S = J.T @ J
+    S = matmul_small(J.T, J)
     lmax = largest_eigval_small(S)
-    S_inv = inv_small(S) if J_inv is None else J_inv @ J_inv.T
+    S_inv = inv_small(S) if J_inv is None else matmul_small(J_inv, J_inv.T)
     return jnp.sqrt(lmax * largest_eigval_small(S_inv))
 
 

@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxtable._linalg import cond_small, inv_small, solve_small
+from jaxtable._linalg import cond_small, inv_small, matmul_small, solve_small
 
 
 def test_small_kernels_match_numpy():
@@ -17,6 +17,11 @@ def test_small_kernels_match_numpy():
         np.testing.assert_allclose(np.asarray(inv_small(A)) @ A, np.eye(6), atol=1e-10)
         assert abs(float(cond_small(A)) / np.linalg.cond(A) - 1) < 1e-8
         assert abs(float(cond_small(A, np.linalg.inv(A))) / np.linalg.cond(A) - 1) < 1e-8
+        for a, b in [((6, 6), (6, 6)), ((6, 3), (3, 3)), ((3, 6), (6, 5)), ((6, 6), (6,))]:
+            A, B = rng.normal(size=a), rng.normal(size=b)
+            np.testing.assert_allclose(
+                np.asarray(matmul_small(A, B)), A @ B, rtol=1e-13, atol=1e-13
+            )
     # a pivot is needed: zero leading entry
     A = np.array([[0.0, 1.0], [1.0, 0.0]])
     np.testing.assert_allclose(np.asarray(solve_small(A, np.eye(2))), A)
