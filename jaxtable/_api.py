@@ -27,7 +27,7 @@ from ._errors import (
     renamed_argument,
     require_x64,
 )
-from ._forward import RESULTS, ForwardOptions, forward_one
+from ._forward import CHORD_BELOW, RESULTS, ForwardOptions, forward_one
 from ._model import inverse_extension
 from ._table import Table
 
@@ -267,6 +267,8 @@ def forward_solve(
     shared_guess, row_guess = (guess, None) if guess.ndim == 1 else (None, guess)
     if shared_guess is not None:  # one first step for the batch (see ForwardOptions)
         options = dataclasses.replace(options, peel_first_step=True)
+    if options.chord_below is None:
+        options = dataclasses.replace(options, chord_below=CHORD_BELOW)
     shared_ctx, row_ctx = split_context(n, context)
     out = run_batch(
         _forward_row,

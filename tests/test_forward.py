@@ -233,3 +233,70 @@ def test_first_step_for_the_batch_changes_nothing(table, effects):
     np.testing.assert_array_equal(np.asarray(shared.steps), np.asarray(per_row.steps))
     assert np.all(np.asarray(shared.result == per_row.result))
     assert not bool(shared.ok[7]) and bool(shared.ok[8]) and int(shared.steps[8]) <= 2
+
+
+@pytest.mark.parametrize("effects", [None, {"lead_scale": "s-dependent"}])
+def test_chord_steps_land_where_newton_does(table, effects):
+    """Batch forward kinematics switches to chord steps (the last factorisation reused) once
+    a Newton step is below 1e-3 of the platform radius: the same poses as Newton's to the
+    stopping rule's precision, the same successes and failures, round trips within 1e-9 mm,
+    and the switch really happens (linear convergence: some poses need an extra step).
+    With the switch far earlier (every step after the first from a home guess, chord steps
+    with the home Jacobian across the whole workspace) the answers are still the same."""
+    if effects is not None:
+        effects = {"spiral": jt.Spiral.from_table(table), "lead_scale": jt.LeadScale(2e-4)}
+    poses = random_poses(2000, seed=13)
+    cmd = np.array(jt.actuator_command(table, poses, effects=effects))
+    cmd[7] = [600.0, 1060.0, 600.0, 1060.0, 600.0, 1060.0]  # no pose fits: a failure
+    cmd[8], poses[8] = np.asarray(table.zero_lengths), 0.0  # home
+    newton = jt.forward_solve(
+        table, cmd, effects=effects, options=jt.ForwardOptions(chord_below=0.0)
+    )
+    chord = jt.forward_solve(table, cmd, effects=effects)
+    early = jt.forward_solve(
+        table,
+        cmd,
+        effects=effects,
+        guess=np.zeros((len(cmd), 6)),
+        options=jt.ForwardOptions(chord_below=10.0),
+    )
+    ok = np.asarray(newton.ok)
+    assert ok.sum() == len(cmd) - 1 and not ok[7]
+    for r in (chord, early):
+        assert np.all(np.asarray(r.result == newton.result))
+        np.testing.assert_allclose(np.asarray(r.pose)[ok], np.asarray(newton.pose)[ok], atol=1e-10)
+        assert_pose_close(np.asarray(r.pose)[ok], poses[ok])
+    extra = np.asarray(chord.steps) - np.asarray(newton.steps)
+    assert extra.min() >= 0 and (extra > 0).mean() > 0.05, np.bincount(extra - extra.min())
+    assert np.asarray(early.steps)[ok].mean() > np.asarray(newton.steps)[ok].mean() + 3
+
+
+def test_chord_step_that_would_not_halve_is_not_taken():
+    """The chord phase on r(y) = sinh(y) − sinh(y*) per component from y = 0 with the switch
+    right after the first step: when the reused slope cosh(0) = 1 cannot reach the root
+    (y* = 2: the chord step from y₁ = sinh(2) would be sinh(3.63) − 3.63 ≈ 15 > y₁/2) the
+    step is refused and the pose left, unconverged, for the Newton loop; near the root
+    (y* = 0.05) the chord steps converge to it."""
+    from jaxtable._forward import _chord_phase
+
+    def run(target):
+        b = np.sinh(np.full(6, target))
+
+        def fn(y):
+            r = jnp.sinh(y) - b
+            return r, r
+
+        def converged(y_new, dy, r):
+            return (jnp.max(jnp.abs(dy)) < 1e-12) & (jnp.max(jnp.abs(r)) < 1e-12)
+
+        def cond(c):
+            return ~c[2] & (c[1] < 50)
+
+        return _chord_phase(fn, converged, (jnp.zeros(6), jnp.array(0), False), cond, 1e9)
+
+    y, k, done = run(2.0)
+    np.testing.assert_allclose(np.asarray(y), np.sinh(2.0), rtol=1e-14)  # Newton step 1 only
+    assert int(k) == 1 and not bool(done)
+    y, k, done = run(0.05)
+    np.testing.assert_allclose(np.asarray(y), 0.05, rtol=1e-12)
+    assert bool(done) and int(k) > 3  # linear convergence: more steps than Newton's ~4
