@@ -3,7 +3,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxtable._linalg import cond_small, inv_small, matmul_small, solve_small
+from jaxtable._linalg import (
+    cond_small,
+    inv_small,
+    largest_eigval_small,
+    matmul_small,
+    solve_small,
+)
 
 
 def test_small_kernels_match_numpy():
@@ -25,6 +31,24 @@ def test_small_kernels_match_numpy():
     # a pivot is needed: zero leading entry
     A = np.array([[0.0, 1.0], [1.0, 0.0]])
     np.testing.assert_allclose(np.asarray(solve_small(A, np.eye(2))), A)
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1.0, 1e30])
+def test_largest_eigenvalue_over_a_wide_range(scale):
+    """Repeated squaring with the trace taken every fourth square: the largest eigenvalue of
+    S = Q diag(λ) Qᵀ to 1e-10 for spectra spanning 30 decades, at any overall scale; when the
+    two largest are less than 1 % apart (1e-3, 1e-4, a tie), to within their gap."""
+    Q = np.linalg.qr(np.random.default_rng(3).normal(size=(6, 6)))[0]
+    for lam in (
+        [3.0, 1.0, 1e-3, 1e-9, 1e-15, 0.0],
+        [1.0, 0.999, 0.5, 0.5, 1e-30, 1e-30],
+        [1.0, 1 - 1e-4, 1e-2, 1e-2, 1e-2, 1e-2],
+        [1.0, 1.0, 1.0, 1.0, 1.0, 1.0],
+    ):
+        S = (Q * (scale * np.asarray(lam))) @ Q.T
+        gap = 1 - lam[1] / lam[0]
+        tol = 1e-10 if gap >= 0.01 else max(gap, 1e-14)  # the docstring's promise
+        assert abs(float(largest_eigval_small(S)) / (scale * lam[0]) - 1) < tol, lam
 
 
 def test_solve_is_linear_in_b_for_reverse_mode():
