@@ -33,6 +33,7 @@ from jaxtable import (
     LeadScale,
     Spiral,
     Table,
+    Tolerances,
     actuator_command,
     command_function,
     error_map,
@@ -48,6 +49,8 @@ from jaxtable import (
 )
 
 # the compiled kernel itself (op counts, machine limit) is an internal on purpose
+from jaxtable._analysis.errormap import _budget_row
+from jaxtable._analysis.tolerances import SOURCES
 from jaxtable._context import Context
 from jaxtable._effects import resolve_effects
 from jaxtable._model import inverse_extension
@@ -127,38 +130,94 @@ def _op_rates(n: int = 1 << 22, reps: int = 5) -> dict:
     return rates
 
 
-_ARITH = ("add", "subtract", "multiply", "negate", "maximum", "minimum", "select", "compare")
-_OPS = {"sqrt": ("sqrt",), "sin": ("sine",), "cos": ("cosine",), "atan2": ("atan2",)}
+_ARITH = (
+    "add",
+    "subtract",
+    "multiply",
+    "negate",
+    "maximum",
+    "minimum",
+    "select",
+    "compare",
+    "abs",
+    "and",
+    "or",
+    "clamp",
+)
+# the few other transcendental ops (power, log, tan in the error map) are priced as a sine
+_OPS = {
+    "sqrt": ("sqrt",),
+    "sin": ("sine", "power", "log", "exponential", "tan"),
+    "cos": ("cosine",),
+    "atan2": ("atan2",),
+}
+_INSTR = re.compile(
+    r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*\w+\[([\d,]*)\][^ ]*\s+([a-z0-9\-]+)\((.*)$"
+)
 
 
-def kernel_op_counts(table: Table) -> dict:
-    """Operations per pose of the compiled compensated-command kernel, from its optimised
-    HLO: each op counts its output elements divided by the batch size (an op on (N, 6) is 6
-    per pose, on (N,) is 1)."""
-    eff = resolve_effects(table, None)
-    N = 4096
-    f = jax.jit(jax.vmap(lambda q: inverse_extension(table, eff, q, Context())[0]))
-    text = f.lower(jnp.zeros((N, 6))).compile().as_text()
+def hlo_op_counts(text: str, batch: int) -> dict:
+    """Operations per pose of a compiled program batched over `batch` poses, from its optimised
+    HLO text: an element-wise op counts its output elements divided by the batch size (an op
+    on (N, 6) is 6 per pose, on (N,) is 1); a reduction counts its input elements less its
+    output's, a dot two per multiply-add. Ops without the batch as leading dimension are
+    per-table constants, evaluated once per batch, and not counted. Loops are counted once
+    (use it on loop-free programs)."""
     counts = {"arith": 0.0, "sqrt": 0.0, "sin": 0.0, "cos": 0.0, "atan2": 0.0, "divide": 0.0}
-    pat = re.compile(r"=\s*f64\[([\d,]*)\][^ ]*\s+([a-z0-9\-]+)\(")
+    shapes = {}  # instruction name -> dims, within the current computation
     for line in text.splitlines():
-        m = pat.search(line)
+        if line.rstrip().endswith("{"):  # a computation starts: names are local to it
+            shapes = {}
+            continue
+        m = _INSTR.search(line)
         if not m:
             continue
-        dims = [int(d) for d in m.group(1).split(",") if d]
-        if not dims or dims[0] != N:
+        name, dims, op, rest = (
+            m.group(1),
+            [int(d) for d in m.group(2).split(",") if d],
+            *m.groups()[2:],
+        )
+        shapes[name] = dims
+        if not dims or dims[0] != batch:
             continue  # per-table constants, evaluated once per batch
-        per_pose = math.prod(dims[1:])
-        op = m.group(2)
+        out = math.prod(dims[1:])
         if op in _ARITH:
-            counts["arith"] += per_pose
+            counts["arith"] += out
         elif op == "divide":
-            counts["divide"] += per_pose
+            counts["divide"] += out
+        elif op in ("reduce", "dot"):
+            operands = re.findall(r"%([\w.\-]+)", rest.split(")")[0])
+            first = shapes.get(operands[0]) if operands else None
+            if not first or first[0] != batch:
+                continue
+            if op == "reduce":
+                counts["arith"] += math.prod(first[1:]) - out
+            else:
+                k = re.search(r"lhs_contracting_dims=\{([\d,]*)\}", rest)
+                size = math.prod(first[int(d)] for d in k.group(1).split(",") if d) if k else 1
+                counts["arith"] += 2 * out * size
         else:
             for k, names in _OPS.items():
                 if op in names:
-                    counts[k] += per_pose
+                    counts[k] += out
     return counts
+
+
+def kernel_op_counts(table: Table) -> dict:
+    """Operations per pose of the compiled compensated-command kernel (`hlo_op_counts`)."""
+    eff = resolve_effects(table, None)
+    N = 4096
+    f = jax.jit(jax.vmap(lambda q: inverse_extension(table, eff, q, Context())[0]))
+    return hlo_op_counts(f.lower(jnp.zeros((N, 6))).compile().as_text(), N)
+
+
+def error_map_op_counts(table: Table, cond: bool) -> dict:
+    """Operations per pose of the compiled error-map kernel (`hlo_op_counts`): the budget,
+    the condition number when `cond`, reachability and the summary's bins."""
+    sigmas = tuple(Tolerances().sigma(s) for s in SOURCES)
+    N = 4096
+    f = jax.jit(jax.vmap(lambda q: _budget_row((table, sigmas, cond), q)))
+    return hlo_op_counts(f.lower(jnp.zeros((N, 6))).compile().as_text(), N)
 
 
 def machine_limit(counts: dict, rates: dict) -> float:
@@ -277,6 +336,7 @@ def run_benchmark(table: Table, quick: bool = False, log=print) -> dict:
                 "per_s": n / t,
                 "compile_s": max(first - t, 0.0),
                 "converged": float(np.mean(np.asarray(res.ok))),
+                "mean_steps": float(np.mean(np.asarray(res.steps))),
                 "max_pose_error": float(np.max(np.abs(np.asarray(res.pose) - q))),
                 "scipy_per_s": scipy_rate,
                 "ratio": n / t / scipy_rate,
@@ -287,6 +347,20 @@ def run_benchmark(table: Table, quick: bool = False, log=print) -> dict:
             f"×{n / t / scipy_rate:.0f})"
         )
     r["fk"] = rows
+    # the IK-based limit: every step evaluates the residual at least once (Newton steps also
+    # its Jacobian), so the IK machine limit over the mean step count bounds the solve
+    big = rows[-1]
+    fk_limit = limit / big["mean_steps"]
+    r["fk_limit"] = {
+        "poses": big["poses"],
+        "mean_steps": big["mean_steps"],
+        "limit_per_s": fk_limit,
+        "fraction": big["per_s"] / fk_limit,
+    }
+    log(
+        f"FK: {big['mean_steps']:.2f} steps a pose; IK-based limit {fk_limit:.3g}/s "
+        f"({big['per_s'] / fk_limit:.0%})"
+    )
     r["fk_scipy"] = {"poses": n_scipy, "per_s": scipy_rate, "max_pose_error": scipy_err}
 
     # -- sensitivities
@@ -345,11 +419,14 @@ def run_benchmark(table: Table, quick: bool = False, log=print) -> dict:
     )
 
     # -- tolerance error map
-    r["error_map"] = _bench_error_map(table, quick)
+    r["error_map"] = _bench_error_map(table, quick, rates)
     em = r["error_map"]
     log(
         f"error map (full budget), {em['poses']:.0e} poses: {em['per_s']:.3g} poses/s "
-        f"({em['budget_only_per_s']:.3g} without the condition number)"
+        f"({em['budget_only_per_s']:.3g} without the condition number); machine limit "
+        f"{em['limit_per_s']:.3g}/s ({em['per_s'] / em['limit_per_s']:.0%}), without "
+        f"{em['budget_only_limit_per_s']:.3g}/s "
+        f"({em['budget_only_per_s'] / em['budget_only_limit_per_s']:.0%})"
     )
 
     # -- diagnose on the bundled example, cold and warm compilation cache
@@ -540,9 +617,11 @@ def suite_wall() -> dict:
     return {"seconds": wall, "returncode": p.returncode, **counts}
 
 
-def _bench_error_map(table: Table, quick: bool) -> dict:
+def _bench_error_map(table: Table, quick: bool, rates: dict) -> dict:
     """The paper's full tolerance budget (6 sources, std/bias/cond/reachability) over random
-    commanded poses, streamed in chunks with the summary statistics."""
+    commanded poses, streamed in chunks with the summary statistics; the machine limit of
+    its compiled kernel, with and without the condition number (op `rates` as measured for
+    the inverse kinematics)."""
     n = 10**4 if quick else 10**6
     q = _poses(n, seed=5)
     first, t = _timed(lambda: error_map(table, grid=q, keep=False), 2 if quick else 3)
@@ -552,6 +631,10 @@ def _bench_error_map(table: Table, quick: bool) -> dict:
         "per_s": n / t,
         "compile_s": max(first - t, 0.0),
         "budget_only_per_s": n / t_lean,
+        "ops_per_pose": error_map_op_counts(table, True),
+        "budget_only_ops_per_pose": error_map_op_counts(table, False),
+        "limit_per_s": machine_limit(error_map_op_counts(table, True), rates),
+        "budget_only_limit_per_s": machine_limit(error_map_op_counts(table, False), rates),
     }
 
 
@@ -607,6 +690,14 @@ def markdown(r: dict) -> str:
             f"{x['converged']:.0%} | {x['max_pose_error']:.1e} | {x['scipy_per_s']:.3g} | "
             f"{x['ratio']:.0f}× |"
         )
+    fl = r["fk_limit"]
+    L += [
+        "",
+        f"IK-based limit: at {fl['poses']:.0e} poses the solve takes {fl['mean_steps']:.2f} "
+        "steps a pose, each evaluating the residual (one inverse-kinematics kernel) at least "
+        f"once, so the IK machine limit over the steps is **{fl['limit_per_s']:.3g} poses/s**; "
+        f"forward kinematics reaches {fl['fraction']:.0%} of it.",
+    ]
     s = r["fk_scipy"]
     se = r["sensitivity"]
     ca = r["calibration"]
@@ -650,7 +741,12 @@ def markdown(r: dict) -> str:
         f"reachability, streamed summary), {r['error_map']['poses']:.0e} random poses | "
         f"{r['error_map']['per_s']:.3g} poses/s (compile {r['error_map']['compile_s']:.1f} s); "
         f"without the condition number (`cond=False`): "
-        f"{r['error_map']['budget_only_per_s']:.3g} poses/s |",
+        f"{r['error_map']['budget_only_per_s']:.3g} poses/s; machine limit of its compiled "
+        f"kernel (ops counted as for the IK) {r['error_map']['limit_per_s']:.3g} poses/s "
+        f"({r['error_map']['per_s'] / r['error_map']['limit_per_s']:.0%}), without the "
+        f"condition number {r['error_map']['budget_only_limit_per_s']:.3g} poses/s "
+        f"({r['error_map']['budget_only_per_s'] / r['error_map']['budget_only_limit_per_s']:.0%})"
+        " |",
     ]
     if "diagnose" in r:
         L.append(

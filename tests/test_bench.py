@@ -5,6 +5,8 @@ import json
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import random_poses
@@ -18,7 +20,7 @@ from benchmarks.baselines import (  # noqa: E402
     numpy_design_criteria,
     scipy_forward,
 )
-from benchmarks.bench import kernel_op_counts, machine_limit  # noqa: E402
+from benchmarks.bench import hlo_op_counts, kernel_op_counts, machine_limit  # noqa: E402
 
 
 def test_numpy_baseline_equals_the_compensated_command(table):
@@ -43,6 +45,17 @@ def test_kernel_op_counts_match_the_formulation(table):
     assert machine_limit(c, rates) == pytest.approx(1e9 / sum(c.values()))
 
 
+def test_hlo_op_counts_of_a_reduction_and_a_dot():
+    """Hand counts: Σ x_k² over 6 entries is 6 multiplies and 5 adds; a 6×6 matrix times a
+    6-vector is 36 multiply-adds (72 ops); the batch is the leading dimension."""
+    N = 512
+    f = jax.jit(jax.vmap(lambda x: jnp.sum(x * x)))
+    assert hlo_op_counts(f.lower(jnp.zeros((N, 6))).compile().as_text(), N)["arith"] == 11
+    g = jax.jit(jax.vmap(lambda a, v: a @ v))
+    text = g.lower(jnp.ones((N, 6, 6)), jnp.ones((N, 6))).compile().as_text()
+    assert hlo_op_counts(text, N)["arith"] == 72
+
+
 @pytest.mark.slow
 def test_bench_cli_quick_writes_every_figure(tmp_path):
     from jaxtable.cli import main
@@ -53,7 +66,9 @@ def test_bench_cli_quick_writes_every_figure(tmp_path):
         "ik",
         "ik_limit",
         "fk",
+        "fk_limit",
         "fk_scipy",
+        "error_map",
         "sensitivity",
         "calibration",
         "latency",
@@ -61,6 +76,8 @@ def test_bench_cli_quick_writes_every_figure(tmp_path):
     } <= set(r)
     assert all("numpy_per_s" in x for x in r["ik"])
     assert all(x["converged"] == 1.0 for x in r["fk"])
+    assert {"mean_steps", "limit_per_s", "fraction"} <= set(r["fk_limit"])
+    assert {"limit_per_s", "budget_only_limit_per_s"} <= set(r["error_map"])
     assert (tmp_path / "benchmark.md").read_text().count("|") > 50
 
 
