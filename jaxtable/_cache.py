@@ -11,12 +11,20 @@ Where: `$JAXTABLE_CACHE_DIR` if set (the value `off` turns the cache off), else
 the small ones too: a diagnosis compiles ~160 programs under half a second each, 5 s in
 all, and loading them is cheaper (the bundled example's cache is ~2 MB). The directory
 may be deleted at any time.
+
+Several processes may share the directory (two runs at once, the test workers): JAX writes
+an entry in place, and a process that reads a half-written entry crashes in the
+deserialiser (a segfault, seen with two test workers). With a size limit set, JAX holds a
+file lock (`filelock`) around every read and write and evicts the least recently used
+entries past `MAX_BYTES`, so the cache is always set with one.
 """
 
 import os
 from pathlib import Path
 
 import jax
+
+MAX_BYTES = 4 << 30  # the limit that turns on JAX's file lock (and its LRU eviction)
 
 
 def cache_directory() -> Path | None:
@@ -40,6 +48,7 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None) -> Path
     except OSError:
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path

@@ -16,6 +16,9 @@ CACHE = Path(
 )
 os.environ["JAXTABLE_CACHE_DIR"] = str(CACHE)
 jax.config.update("jax_compilation_cache_dir", str(CACHE))
+# a size limit makes JAX lock the directory around every read and write: without it a worker
+# can read an entry the other is still writing and crash (see jaxtable/_cache.py)
+jax.config.update("jax_compilation_cache_max_size", 4 << 30)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 import jaxtable as jt  # noqa: E402

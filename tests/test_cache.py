@@ -27,3 +27,23 @@ def test_enable_sets_the_jax_cache_and_the_cli_can_turn_it_off(tmp_path):
         jax.config.update("jax_compilation_cache_dir", old)
     assert build_parser().parse_args(["--no-cache", "spiral"]).no_cache
     assert not build_parser().parse_args(["spiral"]).no_cache
+
+
+def test_the_cache_is_locked_for_processes_that_share_it(tmp_path):
+    """JAX writes a cache entry in place; only with a size limit does it lock the directory
+    around reads and writes (its `.lockfile`), so a process sharing the cache never reads a
+    half-written entry. A fresh process: the cache, once initialised, stays as it is."""
+    import subprocess
+    import sys
+
+    code = (
+        "import jax, jax.numpy as jnp; jax.config.update('jax_enable_x64', True);"
+        "from jaxtable._cache import MAX_BYTES, enable_compilation_cache;"
+        f"enable_compilation_cache({str(tmp_path / 'jc')!r});"
+        "assert jax.config.jax_compilation_cache_max_size == MAX_BYTES > 0;"
+        "jax.jit(lambda x: jnp.sin(x) * 2.0)(jnp.ones(3)).block_until_ready()"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    files = {p.name for p in (tmp_path / "jc").iterdir()}
+    assert ".lockfile" in files
+    assert any(name.endswith("-cache") for name in files), files
