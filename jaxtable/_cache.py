@@ -16,15 +16,36 @@ Several processes may share the directory (two runs at once, the test workers): 
 an entry in place, and a process that reads a half-written entry crashes in the
 deserialiser (a segfault, seen with two test workers). With a size limit set, JAX holds a
 file lock (`filelock`) around every read and write and evicts the least recently used
-entries past `MAX_BYTES`, so the cache is always set with one.
+entries past `MAX_BYTES`, so the cache is always set with one. That eviction needs an
+access-time file beside every entry; entries written without one (by a process with no
+limit, or before this rule) would make every later write fail, so enabling the cache adds
+the missing ones.
 """
 
 import os
+import time
 from pathlib import Path
 
 import jax
 
 MAX_BYTES = 4 << 30  # the limit that turns on JAX's file lock (and its LRU eviction)
+_ENTRY, _ATIME = "-cache", "-atime"  # JAX's file suffixes (jax/_src/lru_cache.py)
+
+
+def _add_missing_access_times(path: Path) -> int:
+    """Write an access-time file (now, 8 bytes little-endian ns, as JAX does) for every
+    entry in `path` that has none; returns how many were added."""
+    now = time.time_ns().to_bytes(8, "little")
+    added = 0
+    for entry in path.glob(f"*{_ENTRY}"):
+        atime = path / (entry.name.removesuffix(_ENTRY) + _ATIME)
+        if not atime.exists():
+            try:
+                atime.write_bytes(now)
+                added += 1
+            except OSError:
+                pass
+    return added
 
 
 def cache_directory() -> Path | None:
@@ -47,6 +68,7 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None) -> Path
         path.mkdir(parents=True, exist_ok=True)
     except OSError:
         return None
+    _add_missing_access_times(path)
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

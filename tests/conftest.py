@@ -19,6 +19,10 @@ jax.config.update("jax_compilation_cache_dir", str(CACHE))
 # a size limit makes JAX lock the directory around every read and write: without it a worker
 # can read an entry the other is still writing and crash (see jaxtable/_cache.py)
 jax.config.update("jax_compilation_cache_max_size", 4 << 30)
+if CACHE.is_dir():  # entries of a run before the limit have no access time: add them
+    from jaxtable._cache import _add_missing_access_times  # noqa: E402
+
+    _add_missing_access_times(CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 import jaxtable as jt  # noqa: E402

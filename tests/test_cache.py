@@ -47,3 +47,19 @@ def test_the_cache_is_locked_for_processes_that_share_it(tmp_path):
     files = {p.name for p in (tmp_path / "jc").iterdir()}
     assert ".lockfile" in files
     assert any(name.endswith("-cache") for name in files), files
+
+
+def test_entries_without_an_access_time_get_one(tmp_path):
+    """An entry written with no size limit has no access-time file, and JAX's eviction scan
+    would then fail every later write: enabling the cache adds the missing ones."""
+    from jaxtable._cache import _add_missing_access_times
+
+    d = tmp_path / "jc"
+    d.mkdir()
+    (d / "jit_f-abc-cache").write_bytes(b"x")
+    (d / "jit_g-def-cache").write_bytes(b"y")
+    (d / "jit_g-def-atime").write_bytes((7).to_bytes(8, "little"))
+    assert _add_missing_access_times(d) == 1
+    assert (d / "jit_f-abc-atime").stat().st_size == 8
+    assert (d / "jit_g-def-atime").read_bytes() == (7).to_bytes(8, "little")  # kept
+    assert _add_missing_access_times(d) == 0

@@ -55,6 +55,8 @@ def run_quick(name: str, extra: list, out: Path) -> subprocess.CompletedProcess:
     env = os.environ | {
         "JAX_COMPILATION_CACHE_DIR": str(ROOT / ".pytest_cache" / "jax"),
         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5",
+        # the size limit that makes JAX lock the shared cache (see jaxtable/_cache.py)
+        "JAX_COMPILATION_CACHE_MAX_SIZE": str(4 << 30),
     }
     return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=TIMEOUT)
 
