@@ -89,18 +89,25 @@ def _newton(table, effects, s, guess, ctx, options):
         small = jnp.max(jnp.abs(dy) / (options.atol + options.rtol * jnp.abs(y_new))) < 1
         return small & (jnp.max(jnp.abs(r)) < options.atol)
 
-    def body(carry):
-        y, k, _ = carry
+    def newton_step(y):
+        """(y − Δy, Δy, r(y), LU, perm): one Newton step and the factorisation it used (the
+        primal of `solve_small`; no derivative is taken through the loop)."""
         J, r = jax.jacfwd(fn, has_aux=True)(y)
-        dy = solve_small(J, r[:, None])[:, 0]
-        y_new = y - dy
-        return y_new, k + 1, converged(y_new, dy, r)
+        LU, perm = lu_small(J)
+        dy = lu_solve_small(LU, perm, r[:, None])[:, 0]
+        return y - dy, dy, r, LU, perm
+
+    def body(carry):
+        y_new, dy, r, _, _ = newton_step(carry[0])
+        return y_new, carry[1] + 1, converged(y_new, dy, r)
 
     start = (guess * scale, jnp.array(0), False)
     if options.peel_first_step and options.max_steps > 0:
         start = body(start)  # under vmap, batched only in what depends on the batch
     if options.chord_below:
-        start = _chord_phase(fn, converged, start, cond, options.chord_below * scale[3])
+        start = _chord_phase(
+            fn, newton_step, converged, start, cond, options.chord_below * scale[3]
+        )
     y, steps, done = jax.lax.while_loop(cond, body, start)
     resid = jnp.max(jnp.abs(fn(y)[0]))
     finite = jnp.all(jnp.isfinite(y))
@@ -120,7 +127,7 @@ def _newton(table, effects, s, guess, ctx, options):
     return q, result, steps, jnp.where(ok, resid, jnp.inf)
 
 
-def _chord_phase(fn, converged, start, cond, below):
+def _chord_phase(fn, newton_step, converged, start, cond, below):
     """Newton steps until the step (max norm, scaled pose, mm) is shorter than `below`, then
     chord steps that reuse the last factorisation while each step is at most half the one
     before (`ForwardOptions.chord_below`). Returns the (y, k, done) carry for the Newton
@@ -133,12 +140,8 @@ def _chord_phase(fn, converged, start, cond, below):
     largest count of chord steps (2–3)."""
 
     def newton_body(carry):
-        y, k, _, _, _, _ = carry
-        J, r = jax.jacfwd(fn, has_aux=True)(y)
-        LU, perm = lu_small(J)
-        dy = lu_solve_small(LU, perm, r[:, None])[:, 0]
-        y_new = y - dy
-        return y_new, k + 1, converged(y_new, dy, r), LU, perm, jnp.max(jnp.abs(dy))
+        y_new, dy, r, LU, perm = newton_step(carry[0])
+        return y_new, carry[1] + 1, converged(y_new, dy, r), LU, perm, jnp.max(jnp.abs(dy))
 
     def newton_cond(carry):
         y, k, done, _, _, last = carry

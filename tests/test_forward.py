@@ -278,6 +278,7 @@ def test_chord_step_that_would_not_halve_is_not_taken():
     step is refused and the pose left, unconverged, for the Newton loop; near the root
     (y* = 0.05) the chord steps converge to it."""
     from jaxtable._forward import _chord_phase
+    from jaxtable._linalg import lu_small, lu_solve_small
 
     def run(target):
         b = np.sinh(np.full(6, target))
@@ -292,7 +293,15 @@ def test_chord_step_that_would_not_halve_is_not_taken():
         def cond(c):
             return ~c[2] & (c[1] < 50)
 
-        return _chord_phase(fn, converged, (jnp.zeros(6), jnp.array(0), False), cond, 1e9)
+        def newton_step(y):
+            r = fn(y)[0]
+            J = jnp.diag(jnp.cosh(y))  # d sinh(y)/dy, per component
+            LU, perm = lu_small(J)
+            dy = lu_solve_small(LU, perm, r[:, None])[:, 0]
+            return y - dy, dy, r, LU, perm
+
+        start = (jnp.zeros(6), jnp.array(0), False)
+        return _chord_phase(fn, newton_step, converged, start, cond, 1e9)
 
     y, k, done = run(2.0)
     np.testing.assert_allclose(np.asarray(y), np.sinh(2.0), rtol=1e-14)  # Newton step 1 only
