@@ -4,6 +4,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 jax.config.update("jax_enable_x64", True)
 # Share compiled programs between the test workers (pytest-xdist) and between runs: JAX's
@@ -26,6 +27,14 @@ if CACHE.is_dir():  # entries of a run before the limit have no access time: add
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 import jaxtable as jt  # noqa: E402
+
+# BLAS pools at one thread in the test workers: two workers share two cores, and many tests
+# call internal fitting code that jaxtable's public functions would otherwise run at one
+# thread (jaxtable/_threads.py; with two-thread pools the suite took 2.4x as long). The
+# environment carries it to the subprocesses (studies, the command line, scale-out workers).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+threadpool_limits(limits=1, user_api="blas")
 
 # Workspace box used by the tests (mm, rad): the reference table's combined-motion box.
 BOX = np.array([100.0, 100.0, 50.0, np.deg2rad(7.5), np.deg2rad(7.5), np.deg2rad(10.0)])

@@ -32,6 +32,7 @@ from .._forward import RESULTS, ForwardOptions, forward_one
 from .._kinematics import in_stroke
 from .._rotation import euler_from_matrix, wrap_reading_difference
 from .._table import Table, replace
+from .._threads import one_blas_thread
 from .instruments import observe
 from .measurements import Measurements
 from .noise import NoiseEstimate, NoiseModel, group_scales, noise_model
@@ -747,6 +748,7 @@ def setup(
 NOISE = ("estimate", "fixed")
 
 
+@one_blas_thread
 def fit(
     st: Setup,
     free_mask=None,
@@ -936,6 +938,7 @@ def _fit_once(
     )
 
 
+@one_blas_thread
 def calibrate(
     nominal: Table,
     data: Measurements,

@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 
+from .._threads import one_blas_thread
 from .fit import Calibration
 from .noise import fit_basis
 
@@ -19,6 +20,7 @@ def make_folds(n: int, k: int, seed: int, grouped: bool = False) -> list[np.ndar
     return [np.sort(perm[i::k]) for i in range(k)]
 
 
+@one_blas_thread
 def heldout_rms(
     cal: Calibration, folds: list, mask: np.ndarray, tol: float = 1e-6, rescale=None
 ) -> float:

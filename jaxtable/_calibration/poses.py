@@ -38,6 +38,7 @@ from jax.flatten_util import ravel_pytree
 from .. import _params as params
 from .._forward import platform_radius
 from .._table import Table
+from .._threads import one_blas_thread
 from .fit import Layout, make_problem, residual, setup, zero_steps
 from .instruments import Instrument, observe
 from .measurements import Measurements
@@ -402,6 +403,7 @@ def select(
     return PoseSelection(index, jac.poses[index], q, criterion, int(swaps), cov)
 
 
+@one_blas_thread
 def select_poses(
     nominal: Table,
     candidates,
@@ -488,6 +490,7 @@ def predicted_pose_error(covariance: np.ndarray, sensitivities: np.ndarray, proj
     return np.sqrt(np.mean(np.clip(var, 0.0, None), axis=0))
 
 
+@one_blas_thread
 def compare_with_random(
     jac: PoseJacobians,
     k: int,

@@ -39,6 +39,7 @@ from .._api import actuator_command
 from .._errors import renamed_argument
 from .._forward import RESULTS, ForwardOptions, forward_one
 from .._rotation import pose_error
+from .._threads import one_blas_thread
 from .fit import Calibration, Setup, build_model, residual
 
 __all__ = [
@@ -189,6 +190,7 @@ def _free_index(st: Setup, cal: Calibration) -> np.ndarray:
     return np.array([pos[n] for n in cal.names], int)
 
 
+@one_blas_thread
 def posterior(
     st: Setup,
     cal: Calibration,

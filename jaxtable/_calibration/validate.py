@@ -27,6 +27,7 @@ from .._forward import platform_radius
 from .._model import length_residual
 from .._rotation import euler_from_matrix, rotation_matrix, wrap_reading_difference
 from .._table import Table, replace
+from .._threads import one_blas_thread
 from .fit import (
     Calibration,
     commanded_lengths,
@@ -226,6 +227,7 @@ def validate_model(
     )
 
 
+@one_blas_thread
 def validate(
     model,
     data: Measurements | Table,  # a Table in the deprecated (calibration, nominal, data) form

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._threads import one_blas_thread
 from .criteria import CRITERIA, criteria
 from .evaluate import Assessment, assess, assess_batch, design_poses
 from .variables import (
@@ -189,6 +190,7 @@ def _solve_batch(loss, z0, args, smooth, progress=False):
     return z
 
 
+@one_blas_thread
 def optimize_design(
     design: Design,
     vary: list[str],
@@ -364,6 +366,7 @@ def _csv_cell(v):
     return f"{v:.10g}" if isinstance(v, float) else str(v)
 
 
+@one_blas_thread
 def pareto_front(
     design: Design,
     vary: list[str],

@@ -53,6 +53,7 @@ from .._calibration.heldout import heldout_rms, make_folds
 from .._calibration.measurements import Measurements
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._table import Table
+from .._threads import one_blas_thread
 from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
 from .gp import ResidualGP, residual_gp
 from .structure import StructureTest, structure_test
@@ -404,6 +405,7 @@ def discovery_setup(
     return setup(nominal, data, free_all, effects=effects, compensated=compensated, sigma=sigma)
 
 
+@one_blas_thread
 def diagnose(
     nominal: Table | Measurements,  # (data, table): the deprecated order
     data: Measurements | Table,

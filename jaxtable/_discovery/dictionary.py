@@ -38,6 +38,7 @@ from .. import _params as params
 from .._calibration.fit import Calibration, Setup
 from .._calibration.measurements import Measurements
 from .._calibration.noise import fit_basis
+from .._threads import one_blas_thread
 from .structure import Whitened, whitened
 
 
@@ -392,6 +393,7 @@ def _canonical_correlation(cov: np.ndarray, a: list, b: list) -> float:
     return float(np.clip(np.linalg.svd(M, compute_uv=False)[0], 0.0, 1.0))
 
 
+@one_blas_thread
 def discrimination_plan(
     cal: Calibration,
     st: Setup,

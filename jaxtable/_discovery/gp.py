@@ -48,6 +48,7 @@ import optimistix as optx
 from .._calibration.fit import Calibration, Setup
 from .._calibration.heldout import make_folds
 from .._calibration.noise import fit_basis
+from .._threads import one_blas_thread
 
 ROW = ("temperature", "time", "session", "payload")  # features of the stop, not the leg
 SHARED = (
@@ -213,6 +214,7 @@ def _conditional(Call, noise, t, f, U, y):
     return U_F @ beta + Call[f][:, t] @ w
 
 
+@one_blas_thread
 def residual_gp(
     cal: Calibration,
     st: Setup,

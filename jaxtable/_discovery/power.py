@@ -46,6 +46,7 @@ from .._calibration.measurements import Measurements
 from .._calibration.noise import fit_basis
 from .._effects import EFFECTS
 from .._table import Table
+from .._threads import one_blas_thread
 from .diagnose import applicable, discovery_setup
 from .dictionary import Bases, candidates, null_max_scores
 from .structure import agreements, features, neighbours, null_law, whitened
@@ -131,6 +132,7 @@ def _planted_step(st, planted: dict) -> tuple[np.ndarray, list]:
     return flat, [st.names[i] for i in np.flatnonzero(flat != 0)]
 
 
+@one_blas_thread
 def detection_power(
     nominal: Table,
     data: Measurements,

@@ -32,6 +32,7 @@ import numpy as np
 
 from .._calibration.fit import Calibration, Setup
 from .._calibration.noise import fit_basis, group_scales, redundancy
+from .._threads import one_blas_thread
 
 # feature families: the words a report uses for each
 FAMILIES = {
@@ -236,6 +237,7 @@ def agreements(w: Whitened, nns: dict, e: np.ndarray | None = None) -> dict:
     return {f: _agreement(e[..., w.rows, :], nn) for f, nn in nns.items()}
 
 
+@one_blas_thread
 def structure_test(
     cal: Calibration,
     st: Setup,

@@ -1,0 +1,109 @@
+"""BLAS pools at one thread while jaxtable fits and diagnoses, the caller's setting after."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+from threadpoolctl import threadpool_info, threadpool_limits
+
+import jaxtable as jt
+from jaxtable._threads import ENV, blas_threads, one_blas_thread
+
+# numpy's and scipy's OpenBLAS (jaxlib's LAPACK kernels call scipy's) are both loaded
+np.linalg.svd(np.ones((3, 3)))
+scipy.linalg.svd(np.ones((3, 3)))
+jnp.linalg.svd(jnp.ones((3, 3)))
+
+
+def _blas_threads() -> list[int]:
+    return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+
+@pytest.fixture
+def two_threads():
+    """Every BLAS pool at 2 threads around the test (the suite's machine has 2 cores)."""
+    with threadpool_limits(limits=2, user_api="blas"):
+        if not _blas_threads() or set(_blas_threads()) != {2}:
+            pytest.skip("no BLAS pool that takes 2 threads")
+        yield
+
+
+@one_blas_thread
+def _seen(fail=False):
+    seen = _blas_threads()
+    if fail:
+        raise RuntimeError("inside")
+    return seen
+
+
+def test_pools_are_one_thread_inside_and_restored_after(two_threads, monkeypatch):
+    monkeypatch.delenv(ENV, raising=False)
+    assert len(_blas_threads()) >= 2  # numpy's and scipy's
+    assert set(_seen()) == {1}
+    assert set(_blas_threads()) == {2}
+    with pytest.raises(RuntimeError, match="inside"):
+        _seen(fail=True)
+    assert set(_blas_threads()) == {2}  # restored after an exception too
+
+
+def test_the_environment_sets_the_count_or_turns_it_off(two_threads, monkeypatch):
+    monkeypatch.setenv(ENV, "off")
+    assert blas_threads() is None and set(_seen()) == {2}
+    monkeypatch.setenv(ENV, "3")
+    assert blas_threads() == 3
+    for bad in ("0", "-1", "two"):
+        monkeypatch.setenv(ENV, bad)
+        with pytest.raises(ValueError, match=ENV):
+            _seen()
+    assert set(_blas_threads()) == {2}
+
+
+@pytest.mark.parametrize(
+    "fn",
+    [
+        jt.fit,
+        jt.calibrate,
+        jt.heldout_rms,
+        jt.select_poses,
+        jt.compare_with_random,
+        jt.posterior,
+        jt.validate,
+        jt.optimize_design,
+        jt.pareto_front,
+        jt.diagnose,
+        jt.discrimination_plan,
+        jt.residual_gp,
+        jt.detection_power,
+        jt.structure_test,
+    ],
+    ids=lambda f: f.__name__,
+)
+def test_public_fitting_functions_run_with_one_blas_thread(fn):
+    wrapper_code = one_blas_thread(lambda: None).__code__
+    f, codes = fn, []
+    while f is not None:  # through the test suite's own annotation-checking wrappers
+        codes.append(getattr(f, "__code__", None))
+        f = getattr(f, "__wrapped__", None)
+    assert wrapper_code in codes, fn.__name__
+
+
+def test_a_fit_sees_one_thread(two_threads, monkeypatch, table):
+    """Inside a real calibration the pools are at one thread (seen by the noise model's
+    host code, which every fit calls)."""
+    import jaxtable._calibration.fit as fit_module
+
+    seen = []
+    original = fit_module.group_scales
+
+    def spy(*a, **k):
+        seen.append(_blas_threads())
+        return original(*a, **k)
+
+    monkeypatch.delenv(ENV, raising=False)
+    monkeypatch.setattr(fit_module, "group_scales", spy)
+    true = jt.perturb_table(table, 3, joint_sigma=0.0, zero_sigma=0.05)
+    data = jt.simulate(table, true, jt.plan_random(30, 3), jt.tracker6(), seed=3)
+    cal = jt.calibrate(table, data, ("zero_lengths",))
+    assert cal.converged
+    assert seen and all(set(s) == {1} for s in seen), seen
+    assert set(_blas_threads()) == {2}
