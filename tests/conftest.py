@@ -16,17 +16,13 @@ CACHE = Path(
     or Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"
 )
 os.environ["JAXTABLE_CACHE_DIR"] = str(CACHE)
-jax.config.update("jax_compilation_cache_dir", str(CACHE))
-# a size limit makes JAX lock the directory around every read and write: without it a worker
-# can read an entry the other is still writing and crash (see jaxtable/_cache.py)
-jax.config.update("jax_compilation_cache_max_size", 4 << 30)
-if CACHE.is_dir():  # entries of a run before the limit have no access time: add them
-    from jaxtable._cache import _add_missing_access_times  # noqa: E402
-
-    _add_missing_access_times(CACHE)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 import jaxtable as jt  # noqa: E402
+
+# the library's own rule (jaxtable/_cache.py): every program stored, and a size limit, which
+# makes JAX lock the directory around every read and write (a worker could otherwise read
+# an entry the other is still writing and crash)
+jt.enable_compilation_cache(CACHE)
 
 # BLAS pools at one thread in the test workers: two workers share two cores, and many tests
 # call internal fitting code that jaxtable's public functions would otherwise run at one

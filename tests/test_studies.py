@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from jaxtable._cache import MAX_BYTES
+
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 600
 
@@ -56,7 +58,7 @@ def run_quick(name: str, extra: list, out: Path) -> subprocess.CompletedProcess:
         "JAX_COMPILATION_CACHE_DIR": str(ROOT / ".pytest_cache" / "jax"),
         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5",
         # the size limit that makes JAX lock the shared cache (see jaxtable/_cache.py)
-        "JAX_COMPILATION_CACHE_MAX_SIZE": str(4 << 30),
+        "JAX_COMPILATION_CACHE_MAX_SIZE": str(MAX_BYTES),
     }
     return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=TIMEOUT)
 
