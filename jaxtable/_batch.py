@@ -10,7 +10,9 @@ device of this process and over every process of a `jax.distributed` job.
   dispatched before the previous one is copied out), each chunk one call of a compiled
   `vmap`. The chunk size is rounded up to a multiple of chunk/16 (the last chunk is padded by
   repeating its last row), so batches of different sizes share a few compiled shapes; a chunk
-  runs multi-threaded, which `lax.map` (an in-place update per step) does not;
+  runs multi-threaded, which `lax.map` (an in-place update per step) does not. Chunks under
+  `_jit.LARGE_BATCH` rows compile quick (XLA's classic emitters: their compile time is the
+  wait), larger ones with XLA's default emitters (they stream: run time is the wait);
 - several local devices (GPUs, or `--xla_force_host_platform_device_count`): each chunk is
   placed with `NamedSharding` over a 1-D mesh of all local devices (`AxisType.Auto`), and the
   jitted vmap is partitioned by XLA, one slice of rows per device;
@@ -29,6 +31,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from ._jit import LARGE_BATCH, jit
 
 DEFAULT_CHUNK = 1 << 16
 
@@ -53,9 +57,18 @@ def flatten_batch(x, tail: int):
     return x.reshape((-1,) + x.shape[x.ndim - tail :]), batch_shape
 
 
-@eqx.filter_jit
-def _vmapped(fn, shared, batched):
+def _vmap(fn, shared, batched):
     return jax.vmap(partial(fn, shared))(batched)
+
+
+# the same program two ways (`_jit`): XLA's default emitters for the kernels that stream
+# large batches, quick compilation for the small ones, which run once or a few times
+_vmapped = eqx.filter_jit(_vmap)
+_vmapped_quick = jit(_vmap)
+
+
+def _vmapped_for(rows: int):
+    return _vmapped if rows >= LARGE_BATCH else _vmapped_quick
 
 
 @eqx.filter_jit
@@ -113,7 +126,7 @@ def _run_local(fn, shared, batched, n: int, chunk: int, progress=None):
         part = _pad_rows(_slice_rows(batched, start, start + size), size)
         if mesh is not None:
             part = jax.device_put(part, rows)
-        return _vmapped(fn, shared, part)
+        return _vmapped_for(size)(fn, shared, part)
 
     starts = range(0, n, size)
     if len(starts) == 1 and n == size and mesh is None:
@@ -159,7 +172,7 @@ def run_batch(fn, shared, batched, *, chunk: int = DEFAULT_CHUNK, progress=None)
     batched = jax.tree.map(np.asarray, batched)
     n = jax.tree.leaves(batched)[0].shape[0]
     if n == 0:
-        return _vmapped(fn, shared, batched)
+        return _vmapped_quick(fn, shared, batched)
     n_proc = jax.process_count()
     if n_proc == 1:
         return _run_local(fn, shared, batched, n, chunk, progress)

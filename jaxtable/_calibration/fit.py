@@ -29,6 +29,7 @@ from .._api import actuator_command
 from .._context import Context, directions, run_time
 from .._effects import resolve_effects
 from .._forward import RESULTS, ForwardOptions, forward_one
+from .._jit import jit
 from .._kinematics import in_stroke
 from .._rotation import euler_from_matrix, wrap_reading_difference
 from .._table import Table, replace
@@ -174,7 +175,7 @@ def residual(theta, args):
     return _weighted_residual(problem, layout, theta)[0]
 
 
-residual_jit = eqx.filter_jit(residual)
+residual_jit = jit(residual)
 
 
 def _residual_and_jacobian(problem, layout, unravel):
@@ -199,7 +200,7 @@ def _residual_and_jacobian(problem, layout, unravel):
     return evaluate
 
 
-@eqx.filter_jit
+@jit
 def _jacobian(problem, layout, theta):
     """(J, residual, solved) at θ (see `_residual_and_jacobian`)."""
     flat, unravel = ravel_pytree(theta)
@@ -228,7 +229,7 @@ def _truncated_step(A, r, rcond):
     return -V @ (jnp.where(keep, 1.0 / jnp.where(keep, lam, 1.0), 0.0) * (V.T @ (A.T @ r)))
 
 
-@eqx.filter_jit
+@jit
 def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e-6):
     """Gauss-Newton in Jacobi-scaled variables u (θ = θ0 + D·u, D = `_scales` of the
     Jacobian at θ0) with truncated least-squares steps (`_truncated_step`): singular values
@@ -290,7 +291,7 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
     return unravel(c["f_prev"]), c["done"], c["k"], c["J"], c["solved"], c["r0"], c["r"]
 
 
-@eqx.filter_jit
+@jit
 def _levenberg_marquardt(
     problem, layout, theta0, D, rtol, atol, max_steps, method="levenberg_marquardt"
 ):

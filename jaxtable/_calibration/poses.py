@@ -29,7 +29,6 @@ Jacobian (Sun & Hollerbach's O1 and a minimum-singular-value index).
 
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -37,6 +36,7 @@ from jax.flatten_util import ravel_pytree
 
 from .. import _params as params
 from .._forward import platform_radius
+from .._jit import jit
 from .._table import Table
 from .._threads import one_blas_thread
 from .fit import Layout, make_problem, residual, setup, zero_steps
@@ -103,7 +103,7 @@ class PoseJacobians:
         )
 
 
-@eqx.filter_jit
+@jit
 def _jacobian(problem, layout, theta):
     flat, unravel = ravel_pytree(theta)
     return jax.jacfwd(lambda f: residual(unravel(f), (problem, layout)))(flat)
@@ -231,7 +231,7 @@ def _info(G, chosen):
     return jnp.einsum("i,imr,ims->rs", chosen, G, G)
 
 
-@eqx.filter_jit
+@jit
 def _greedy_exchange(G, k, prior, criterion, passes, nuisance=None):
     """Indices (k,) of a greedy + exchange design, its criterion value (with the `prior`
     information (r, r) added: a small ridge, or what earlier data already hold) and the

@@ -38,6 +38,7 @@ from jax.flatten_util import ravel_pytree
 from .._api import actuator_command
 from .._errors import renamed_argument
 from .._forward import RESULTS, ForwardOptions, forward_one
+from .._jit import jit
 from .._rotation import pose_error
 from .._threads import one_blas_thread
 from .fit import Calibration, Setup, build_model, residual
@@ -165,7 +166,7 @@ def _whitening(cal: Calibration):
     return dd[:, None] * E * np.sqrt(lam), r
 
 
-@eqx.filter_jit
+@jit
 def _log_prob_batch(z, problem, layout, template, center, L, inv_prior_var):
     """Log-posterior (W,) of W walkers z (W, r): one vmapped residual evaluation."""
     _, unravel = ravel_pytree(template)
@@ -351,7 +352,7 @@ class PredictiveBands:
     failed: int
 
 
-@eqx.filter_jit
+@jit
 def _pose_errors(thetas, problem, layout, s, poses, options):
     """Pose errors (S, Q, 6) (`pose_error`: translation mm, rotation vector rad) and
     success flags (S, Q) of S parameter pytrees (leading axis) at the actuator extensions

@@ -24,6 +24,7 @@ from .. import _params as params
 from .._api import forward_solve
 from .._effects import resolve_effects
 from .._forward import platform_radius
+from .._jit import jit
 from .._model import length_residual
 from .._rotation import euler_from_matrix, rotation_matrix, wrap_reading_difference
 from .._table import Table, replace
@@ -86,7 +87,7 @@ class Validation:
         }
 
 
-@jax.jit
+@jit
 def _readings(q, frames, target):
     return jax.vmap(observe, in_axes=(0, 0, None))(q, frames, target)
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from .._analysis.workspaces import PoseList, Workspace
 from .._errors import TableFileError
+from .._jit import jit
 from .._table import Table
 from .criteria import criteria, pose_criteria, stiffness_matrix
 from .hardware import Hardware, hardware_for
@@ -47,8 +48,8 @@ def as_design(design: "Design | Table", hardware: Hardware | None = None) -> Des
     return Design(design, hardware_for(design) if hardware is None else hardware)
 
 
-_criteria = eqx.filter_jit(criteria)
-_per_pose = eqx.filter_jit(jax.vmap(pose_criteria, in_axes=(None, None, 0)))
+_criteria = jit(criteria)
+_per_pose = jit(jax.vmap(pose_criteria, in_axes=(None, None, 0)))
 
 
 @dataclass
@@ -95,7 +96,7 @@ def assess(
     return Assessment(design, poses, values, K, per_pose)
 
 
-@eqx.filter_jit
+@eqx.filter_jit  # many designs: a streaming kernel (XLA's default emitters, `_jit`)
 def _batch(designs: Design, poses, smooth):
     def one(d):
         return criteria(d.table(), d.hardware, poses, smooth)

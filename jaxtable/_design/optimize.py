@@ -15,6 +15,7 @@ one vmapped solve. The winner is chosen on the EXACT criteria over the full pose
 objective among the candidates that meet every constraint (else the least violation).
 """
 
+import functools
 import itertools
 import re
 import sys
@@ -25,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._jit import compiler_options
 from .._threads import one_blas_thread
 from .criteria import CRITERIA, criteria
 from .evaluate import Assessment, assess, assess_batch, design_poses
@@ -175,7 +177,7 @@ def _solve_batch(loss, z0, args, smooth, progress=False):
     warm-started; one compiled program runs every round."""
     solver = optx.BFGS(rtol=1e-6, atol=1e-8)
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=compiler_options())
     def round_(z, mu, p, a):
         def one(z, a):
             sol = optx.minimise(loss, solver, z, args=(mu, p, *a), max_steps=200, throw=False)

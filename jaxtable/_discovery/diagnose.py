@@ -42,7 +42,6 @@ import sys
 import warnings
 from dataclasses import dataclass, field
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,6 +51,7 @@ from .._calibration.fit import Calibration, Setup, fit, setup
 from .._calibration.heldout import heldout_rms, make_folds
 from .._calibration.measurements import Measurements
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
+from .._jit import jit
 from .._table import Table
 from .._threads import one_blas_thread
 from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
@@ -777,7 +777,7 @@ def diagnose(
 # --- signatures: leg-space views of the residuals (for the report) --------------------------
 
 
-@eqx.filter_jit
+@jit
 def _leg_lengths_jvp(table, poses, dq):
     """(N, 6) (∂L/∂q) δq at each pose (N, 6) for pose changes δq (N, 6)."""
     from .._kinematics import leg_lengths
@@ -788,7 +788,7 @@ def _leg_lengths_jvp(table, poses, dq):
 
 
 # (N,) poses and payloads -> (N, 6) static leg forces, N (one compiled program per shape)
-_leg_forces_batch = eqx.filter_jit(jax.vmap(leg_forces, in_axes=(None, 0, 0)))
+_leg_forces_batch = jit(jax.vmap(leg_forces, in_axes=(None, 0, 0)))
 
 
 def leg_residuals(diag: Diagnosis, cal: Calibration) -> np.ndarray | None:

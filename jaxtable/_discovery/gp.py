@@ -39,7 +39,6 @@ overestimate: a ceiling, as intended.
 
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -48,6 +47,7 @@ import optimistix as optx
 from .._calibration.fit import Calibration, Setup
 from .._calibration.heldout import make_folds
 from .._calibration.noise import fit_basis
+from .._jit import jit
 from .._threads import one_blas_thread
 
 ROW = ("temperature", "time", "session", "payload")  # features of the stop, not the leg
@@ -174,7 +174,7 @@ def _reading_cov(h, A, s, d, R, vary, obs):
     return C[obs][:, obs]
 
 
-_reading_cov_jit = eqx.filter_jit(_reading_cov)
+_reading_cov_jit = jit(_reading_cov)
 
 
 def _neg_log_posterior(h, args):
@@ -192,14 +192,14 @@ def _neg_log_posterior(h, args):
     return nll + prior
 
 
-@eqx.filter_jit
+@jit
 def _fit_hyper(h0, args, max_steps):
     solver = optx.BFGS(rtol=1e-6, atol=1e-6)
     sol = optx.minimise(_neg_log_posterior, solver, h0, args, max_steps=max_steps, throw=False)
     return sol.value, _neg_log_posterior(sol.value, args), sol.result == optx.RESULTS.successful
 
 
-@eqx.filter_jit
+@jit
 def _conditional(Call, noise, t, f, U, y):
     """GP-with-basis prediction of the readings `f` from the readings `t` (indices into the
     measured readings), given the GP part's covariance `Call` of all measured readings and
