@@ -18,7 +18,7 @@ def main(argv=None) -> int:
     p.add_argument(
         "--suite",
         action="store_true",
-        help="also time the default test suite from an empty compilation cache (~15 min, 2 cores)",
+        help="also time the default test suite from an empty compilation cache (~12 min, 2 cores)",
     )
     p.add_argument("--table", type=Path, default=None, help="table file (default: reference)")
     p.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "results")

@@ -706,7 +706,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument(
         "--suite",
         action="store_true",
-        help="also time the default test suite from an empty compilation cache (~15 min, 2 cores)",
+        help="also time the default test suite from an empty compilation cache (~12 min, 2 cores)",
     )
     sp.set_defaults(func=_bench)
     return p
