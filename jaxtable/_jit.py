@@ -6,7 +6,7 @@ few hundred rows that simulate, calibrate and validate. What the user waits for 
 XLA's compilation. XLA's CPU backend compiles them faster with its classic loop emitters
 (`xla_cpu_use_fusion_emitters=False`) than with the fusion emitters it uses by default, and
 runs them as fast: the 54-parameter calibration's fit program 3.7 → 2.4 s, a forward
-solve's batch kernel 4.0 → 2.4 s, the default test suite on a clean clone 14–15 → 11 min.
+solve's batch kernel 4.0 → 2.4 s, the default test suite on a clean clone 14–15 → 12 min.
 The kernels that stream large batches (`_batch.run_batch` chunks of `LARGE_BATCH` rows or
 more: error maps, command maps, forward kinematics of many poses) keep XLA's default: they
 run many times, and the default runs the error map's kernel ~14 % faster.

@@ -177,6 +177,8 @@ def _solve_batch(loss, z0, args, smooth, progress=False):
     warm-started; one compiled program runs every round."""
     solver = optx.BFGS(rtol=1e-6, atol=1e-8)
 
+    # plain jax.jit with the quick options, not `_jit.jit`: filter_jit would make the
+    # round's float penalty weights static and compile once per round
     @functools.partial(jax.jit, compiler_options=compiler_options())
     def round_(z, mu, p, a):
         def one(z, a):
