@@ -1,5 +1,7 @@
 """Table files (TOML): load, validate, save. Schema: DESIGN.md "Table file"."""
 
+import csv
+import io
 import math
 import tomllib
 from importlib import resources
@@ -184,6 +186,41 @@ def load_model(path) -> tuple[Table, dict | None]:
     doc = read_toml(path, TableFileError, "table")
     table = table_from_dict(doc, where=str(path))
     return table, (effects_from_dict(doc, str(path)) if "effects" in doc else None)
+
+
+def read_delimited(
+    path, error: type[Exception], kind: str
+) -> tuple[list[str] | None, list[list[str]]]:
+    """Header and rows of a delimited text file: UTF-8 (a byte-order mark, as spreadsheet
+    programs write, is dropped), any line ending; comma-separated, or semicolon- or
+    tab-separated where the header line has no comma (spreadsheets in locales with a decimal
+    comma). Blank lines at the end of the file are not rows; text in another encoding raises
+    `error` naming the row (row 1 = the line after the header) rather than being guessed at.
+    A missing file raises `error` naming the `kind` of file."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise error(f"{kind} file not found: {path}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = raw.count(b"\n", 0, e.start)
+        where = "the header" if line == 0 else f"row {line}"
+        raise error(
+            f"{path}: {where}: byte 0x{raw[e.start]:02x} is not UTF-8 text "
+            "(save the file as UTF-8, e.g. 'CSV UTF-8')"
+        ) from None
+    first = text.split("\n", 1)[0]
+    delimiter = ","
+    if "," not in first:
+        delimiter = next((d for d in (";", "\t") if d in first), ",")
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
+    header = next(reader, None)
+    rows = list(reader)
+    while rows and not any(c.strip() for c in rows[-1]):
+        rows.pop()
+    return header, rows
 
 
 def read_toml(path: Path, error: type[Exception], kind: str) -> dict:

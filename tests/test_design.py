@@ -323,7 +323,7 @@ def test_a_table_that_is_not_symmetric_is_refused_as_one():
 def test_workspace_files_name_the_bad_row_and_column(tmp_path):
     p = tmp_path / "ws.csv"
     p.write_text("x,y,z,roll,pitch,yaw\n0,0,0,0,0,0\n1,2,three,0,0,0\n")
-    with pytest.raises(jt.WorkspaceFileError, match="row 3, column 'z'"):
+    with pytest.raises(jt.WorkspaceFileError, match="row 2, column 'z'"):
         jt.load_workspace(p)
     p.write_text("cmd_x,cmd_y,cmd_z,cmd_roll,cmd_pitch,cmd_yaw\n10,0,0,0,0,90\n")
     pl = jt.load_workspace(p)

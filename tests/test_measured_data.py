@@ -145,6 +145,81 @@ def test_blank_session_cells_continue_the_session_before(tmp_path, sessions):
     assert jt.load_measurements(path).session.tolist() == ["A"] * 4 + ["B"] * 4
 
 
+# --- files as spreadsheets and loggers write them --------------------------------------------
+
+
+def _same(m, ref):
+    for name in ("cmd_pose", "measured", "cmd_lengths", "sigma", "temperature"):
+        np.testing.assert_array_equal(getattr(m, name), getattr(ref, name), err_msg=name)
+    assert m.session.tolist() == ref.session.tolist()
+
+
+def test_spreadsheet_exports_read_as_the_plain_file(tmp_path, sessions):
+    """A byte-order mark, CRLF line endings, blank lines at the end, a semicolon- or
+    tab-separated file (a spreadsheet in a decimal-comma locale): the same values as the
+    plain comma-separated file, to the bit. A workspace pose list follows the same rule."""
+    _, a, _, _ = sessions
+    plain = tmp_path / "plain.csv"
+    jt.save_measurements(a.subset(np.arange(12)), plain)
+    ref = jt.load_measurements(plain)
+    lines = plain.read_text().splitlines()
+    assert "," in lines[0] and not any(";" in x or "\t" in x for x in lines)
+    variants = {
+        "bom_crlf.csv": ("\ufeff" + "\r\n".join(lines) + "\r\n\r\n\r\n").encode(),
+        "semicolon.csv": ("\n".join(x.replace(",", ";") for x in lines) + "\n").encode(),
+        "tab.csv": ("\n".join(x.replace(",", "\t") for x in lines) + "\n \n").encode(),
+    }
+    for name, raw in variants.items():
+        (tmp_path / name).write_bytes(raw)
+        _same(jt.load_measurements(tmp_path / name), ref)
+    ws = tmp_path / "ws.csv"
+    ws.write_bytes(b"\xef\xbb\xbfx;y;z;roll;pitch;yaw\r\n1;2;3;0;0;90\r\n\r\n4;5;6;0;0;0\r\n")
+    np.testing.assert_allclose(
+        jt.load_workspace(ws).poses(), [[1, 2, 3, 0, 0, np.pi / 2], [4, 5, 6, 0, 0, 0]]
+    )
+
+
+def test_what_a_reader_cannot_know_is_refused_by_row_and_column(tmp_path, sessions):
+    """Decimal commas, an infinite reading (a tracker's overflow is not a value), a byte
+    that is not UTF-8, a blank line between stops: refused, the message naming the row
+    (1 = the line after the header) and column; a value not measured stays an empty cell."""
+    _, a, _, _ = sessions
+    plain = tmp_path / "plain.csv"
+    jt.save_measurements(
+        dataclasses.replace(a.subset(np.arange(6)), temperature=np.full(6, 21.0)), plain
+    )
+    lines = plain.read_text().splitlines()
+    header = lines[0].split(",")
+
+    def write(name, rows, encoding="utf-8"):
+        p = tmp_path / name
+        p.write_bytes(("\n".join(rows) + "\n").encode(encoding))
+        return p
+
+    def edit(row, col, value, sep=","):
+        rows = [x.replace(",", sep) for x in lines]
+        cells = rows[row].split(sep)
+        cells[header.index(col)] = value
+        return rows[:row] + [sep.join(cells)] + rows[row + 1 :]
+
+    semi = edit(4, "cmd_y", "12,5", sep=";")
+    with pytest.raises(jt.DataFileError, match=r"row 4, column 'cmd_y': '12,5' .*decimal comma"):
+        jt.load_measurements(write("comma.csv", semi))
+    for value in ("inf", "-Infinity"):
+        with pytest.raises(jt.DataFileError, match=rf"row 3, column 'y': non-finite .*'{value}'"):
+            jt.load_measurements(write("inf.csv", edit(3, "y", value)))
+    with pytest.raises(jt.DataFileError, match="row 2, column 'temperature': non-finite"):
+        jt.load_measurements(write("t.csv", edit(2, "temperature", "inf")))
+    rows = edit(5, "session", "Salle \xb0 2")
+    with pytest.raises(jt.DataFileError, match=r"row 5: byte 0xb0 is not UTF-8"):
+        jt.load_measurements(write("latin1.csv", rows, "latin-1"))
+    assert jt.load_measurements(write("utf8.csv", rows)).session[4] == "Salle \xb0 2"
+    with pytest.raises(jt.DataFileError, match="row 3 is a blank line"):
+        jt.load_measurements(write("gap.csv", lines[:3] + [""] + lines[3:]))
+    lost = jt.load_measurements(write("lost.csv", edit(3, "y", "")))
+    assert np.isnan(lost.measured[2, 1]) and np.isfinite(lost.measured[2, [0, 2]]).all()
+
+
 # --- commands without cmd_l ------------------------------------------------------------------
 
 

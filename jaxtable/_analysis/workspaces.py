@@ -132,19 +132,20 @@ def load_workspace(path) -> "Workspace | PoseList":
     - TOML with `single = [6 half-ranges]` (each DOF alone) and/or `combined = [6 half-widths]`
       (the box all DOF share), missing keys defaulting to the reference table's;
     - CSV with a header naming the pose columns x, y, z, roll, pitch, yaw (or cmd_x, ...):
-      an explicit pose list.
+      an explicit pose list; read as measurement files are (`_io.read_delimited`: UTF-8,
+      comma, semicolon or tab; rows numbered from the line after the header); blank lines
+      are skipped.
     """
     from pathlib import Path
 
     path = Path(path)
     if path.suffix.lower() == ".csv":
-        import csv
+        from .._io import read_delimited
 
-        with open(path, newline="") as f:
-            rows = list(csv.reader(f))
-        if not rows:
+        header, rows = read_delimited(path, WorkspaceFileError, "workspace")
+        if not header:
             raise WorkspaceFileError(f"{path}: empty file")
-        header = [h.strip() for h in rows[0]]
+        header = [h.strip() for h in header]
         cols = []
         for c in POSE_COLUMNS:
             for name in (c, f"cmd_{c}"):
@@ -154,7 +155,7 @@ def load_workspace(path) -> "Workspace | PoseList":
             else:
                 raise WorkspaceFileError(f"{path}: no column '{c}' (or 'cmd_{c}') in the header")
         poses = []
-        for r, row in enumerate(rows[1:], start=2):
+        for r, row in enumerate(rows, start=1):  # row 1: the line after the header
             if not any(cell.strip() for cell in row):
                 continue
             values = []

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import POSE_COLUMNS
+from .._io import read_delimited
 from .._params import pose_from_file, pose_to_file
 
 CMD = tuple(f"cmd_{c}" for c in POSE_COLUMNS)
@@ -111,11 +112,20 @@ def _cell(value: str, row: int, col: str, path, required: bool) -> float:
     try:
         x = float(v)
     except ValueError:
+        hint = ""
+        try:
+            float(v.replace(",", "."))
+            hint = " (a decimal comma: write numbers with a decimal point)"
+        except ValueError:
+            pass
         raise DataFileError(
-            f"{path}: row {row}, column '{col}': '{value}' is not a number"
+            f"{path}: row {row}, column '{col}': '{value}' is not a number{hint}"
         ) from None
-    if not math.isfinite(x) and required:
-        raise DataFileError(f"{path}: row {row}, column '{col}': non-finite value '{value}'")
+    if math.isinf(x):
+        raise DataFileError(
+            f"{path}: row {row}, column '{col}': non-finite value '{value}'"
+            + ("" if required else " (an empty cell or NaN marks a value not measured)")
+        )
     return x
 
 
@@ -135,17 +145,16 @@ def _sessions(cells: list[str]) -> np.ndarray:
 
 def load_measurements(path) -> Measurements:
     """Read and validate a measurement CSV. Rows are numbered from 1 (the first data row,
-    the line after the header). Refuses, naming row and column: a missing commanded value, a
-    non-numeric cell in a known numeric column, a negative σ; and a file with no measured
-    column or no commanded-pose columns. Nothing is dropped; unknown columns are kept."""
+    the line after the header). Read as `_io.read_delimited` reads (UTF-8 with or without a
+    byte-order mark, any line ending, comma or else semicolon or tab separated, blank lines
+    at the end ignored). Refuses, naming row and column: a missing commanded value, a
+    non-numeric cell in a known numeric column (with a hint where it is a decimal comma), an
+    infinite value anywhere (a value not measured is an empty cell or NaN), a negative σ, a
+    blank line between rows, a row with a different number of cells; and a file with no
+    measured column or no commanded-pose columns. Nothing is dropped; unknown columns are
+    kept."""
     path = Path(path)
-    try:
-        with path.open(newline="") as f:
-            reader = csv.reader(f)
-            header = next(reader, None)
-            rows = list(reader)
-    except FileNotFoundError:
-        raise DataFileError(f"measurement file not found: {path}") from None
+    header, rows = read_delimited(path, DataFileError, "measurement")
     if not header:
         raise DataFileError(f"{path}: empty file (no header)")
     header = [h.strip() for h in header]
@@ -169,6 +178,8 @@ def load_measurements(path) -> Measurements:
     col = {h: k for k, h in enumerate(header)}
     n = len(rows)
     for r, row in enumerate(rows, start=1):
+        if not row:
+            raise DataFileError(f"{path}: row {r} is a blank line (a stop needs its command)")
         if len(row) != len(header):
             raise DataFileError(
                 f"{path}: row {r} has {len(row)} cells, the header has {len(header)}"
