@@ -259,8 +259,8 @@ def _diagnose(args) -> int:
     if diag.residual_model is not None:
         gp = diag.residual_model
         print(
-            f"a GP residual model gains {100 * gp.gain:.1f} % on held-out rows; it depends "
-            f"most on: {'; '.join(gp.hints()[:4])}"
+            f"a GP residual model{gp.scope()} gains {100 * gp.gain:.1f} % on held-out rows; "
+            f"it depends most on: {'; '.join(gp.hints()[:4])}"
         )
     print(f"wrote {json_path} and {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0

@@ -79,3 +79,29 @@ def test_gp_gains_little_on_noise(planted):
     gains = [jt.residual_gp(cal, st).gain for st, cal in (_fit({}, s) for s in (11, 12, 13))]
     assert np.median(gains) < 0.015, gains
     assert max(gains) < 0.5 * gp.gain, (gains, gp.gain)
+
+
+def test_spread_rows_cover_the_run_evenly():
+    from jaxtable._discovery.gp import spread_rows
+
+    np.testing.assert_array_equal(spread_rows(7, 10), np.arange(7))
+    for n, m in ((1000, 200), (201, 200), (3001, 50)):
+        rows = spread_rows(n, m)
+        gaps = np.diff(rows)
+        assert len(rows) == m and rows[0] == 0 and rows[-1] == n - 1
+        assert gaps.min() >= 1 and gaps.max() - gaps.min() <= 1, (n, m, set(gaps))
+
+
+def test_a_long_run_is_modelled_on_stops_spread_over_it(planted):
+    """The GP's cost grows as the cube of the stops, so a run longer than `max_rows` is
+    modelled on that many stops spread over it: on every other stop of the planted run the
+    residual model still names leg 3's extension and gains what the exact term gains on
+    those folds (as the full model does), and it says which stops it used."""
+    st, cal, full = planted
+    gp = jt.residual_gp(cal, st, max_rows=N // 2)
+    assert gp.rows_total == N and len(gp.rows) == N // 2 and full.scope() == ""
+    assert gp.scope() == f" (on {N // 2} of {N} stops, spread over the run)"
+    assert next(iter(gp.components)) in ("leg 3: extension s_3", "leg 3: own extension s_i")
+    assert gp.converged and gp.gain > 0.7 * full.gain, (gp.gain, full.gain)
+    with pytest.raises(ValueError, match="max_rows must be at least 10"):
+        jt.residual_gp(cal, st, max_rows=9)

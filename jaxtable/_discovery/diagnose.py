@@ -369,6 +369,8 @@ class Diagnosis:
                 "hints": self.residual_model.hints(),
                 "components": dict(list(self.residual_model.components.items())[:8]),
                 "noise": self.residual_model.noise,
+                "rows": len(self.residual_model.rows),
+                "rows_total": self.residual_model.rows_total,
             },
             "selected_params": {
                 name: {f: {"value": v.tolist(), "std": s.tolist()} for f, (v, s) in p.items()}
@@ -743,7 +745,8 @@ def diagnose(
         log("structure remains that nothing named explains: a GP residual model for hints ...")
         residual_model = residual_gp(final, st, folds=folds, seed=seed)
         log(
-            f"  GP residual model: held-out gain {100 * residual_model.gain:+.1f} %; "
+            f"  GP residual model{residual_model.scope()}: held-out gain "
+            f"{100 * residual_model.gain:+.1f} %; "
             f"strongest: {'; '.join(residual_model.hints()[:3])}"
         )
     return Diagnosis(

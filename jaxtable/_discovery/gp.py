@@ -35,6 +35,10 @@ all rows; held-out predictions then refit β and condition g on the other folds'
 (the GP predictor with explicit basis functions: generalised least squares for β, kriging of
 what is left). Fitting the hyper-parameters on every row makes the held-out gain a slight
 overestimate: a ceiling, as intended.
+
+A run longer than `MAX_ROWS` stops is modelled on that many stops spread evenly over it (the
+cost grows as the cube of the stops and the covariance as their square; a few hundred stops
+say what the residuals depend on as well as thousands would).
 """
 
 from dataclasses import dataclass
@@ -64,6 +68,7 @@ PER_LEG = (
 )
 LOG_ELL_SD = 1.0  # prior log-sd of a length scale (median 1 standardised unit)
 LOG_W_SD = 2.0  # prior log-sd of a component weight (median 1)
+MAX_ROWS = 200  # stops the residual model is fitted on (spread over a longer run)
 
 
 @dataclass(frozen=True)
@@ -78,7 +83,9 @@ class ResidualGP:
       variance of each additive component of g (σ² of the readings per unit response),
       largest first: what the residuals depend on;
     - `noise`: s (1.0: the residuals' noise is the fit's σ); `log_evidence`: the restricted
-      log likelihood at the optimum (priors included); `converged`; `folds`, `grouped`.
+      log likelihood at the optimum (priors included); `converged`; `folds`, `grouped`;
+    - `rows`: the stops the model was fitted and scored on (indices into the data; all of
+      them up to `max_rows`, else that many spread evenly over the run), `rows_total`.
     """
 
     heldout_rms_model: float
@@ -90,6 +97,14 @@ class ResidualGP:
     converged: bool
     folds: int
     grouped: bool
+    rows: np.ndarray
+    rows_total: int
+
+    def scope(self) -> str:
+        """ "" when every stop was used, else " (on M of N stops, spread over the run)"."""
+        if len(self.rows) == self.rows_total:
+            return ""
+        return f" (on {len(self.rows)} of {self.rows_total} stops, spread over the run)"
 
     def hints(self, share: float = 0.1) -> list[str]:
         """The components whose variance is at least `share` of the largest, largest first."""
@@ -224,24 +239,42 @@ def residual_gp(
     seed: int = 0,
     max_steps: int = 500,
     tol: float = 1e-6,
+    max_rows: int = MAX_ROWS,
 ) -> ResidualGP:
     """Fit the GP residual model (module docstring) to the residuals of fit `cal` of set-up
     `st` (`diagnose`'s `Diagnosis.base` / `.final` and `.setup`, or `setup` + `fit`), and
     score it on `folds` held-out folds (`grouped`: contiguous stretches of the run, as the
-    discovery dictionary's gains are scored; else rows dealt at random)."""
+    discovery dictionary's gains are scored; else rows dealt at random).
+
+    Its cost grows as the cube of the stops (100: ~6 s, 200: ~20 s, 400: ~2 min on two
+    cores; its covariance holds (6 N)² numbers): a longer run is modelled on `max_rows`
+    stops spread evenly over it (every k-th, so each session, the temperature and time
+    ranges keep their share), which is what the hints need; `rows` says which."""
     if cal.jacobian_full is None or cal.residual is None:
         raise ValueError("residual_gp needs a fit with its full Jacobian (diagnose's, or fit())")
-    mask = np.asarray(st.mask, bool)
-    n = mask.shape[0]
-    if n < 2 * folds:
-        raise ValueError(f"residual_gp needs at least {2 * folds} rows for {folds} folds; got {n}")
+    mask_all = np.asarray(st.mask, bool)
+    n_all = mask_all.shape[0]
+    if n_all < 2 * folds:
+        raise ValueError(
+            f"residual_gp needs at least {2 * folds} rows for {folds} folds; got {n_all}"
+        )
+    if max_rows < 2 * folds:
+        raise ValueError(f"max_rows must be at least {2 * folds} for {folds} folds")
+    keep = spread_rows(n_all, max_rows)
+    mask = mask_all[keep]
+    n = len(keep)
     obs = np.flatnonzero(mask.reshape(-1))
-    y = np.asarray(cal.residual, float).reshape(-1)[obs]
-    U = fit_basis(np.asarray(cal.jacobian, float)[obs], tol)
+    # the kept stops' measured readings, as indices into the fit's N·6 readings
+    reading = (keep[:, None] * 6 + np.arange(6)).reshape(-1)[mask.reshape(-1)]
+    y = np.asarray(cal.residual, float).reshape(-1)[reading]
+    U = fit_basis(np.asarray(cal.jacobian, float)[reading], tol)
     zl = [st.names.index(f"zero_lengths[{i}]") for i in range(1, 7)]
-    A = np.asarray(cal.jacobian_full, float)[:, zl].reshape(n, 6, 6)  # (row, reading, leg)
+    A = np.asarray(cal.jacobian_full, float)[:, zl].reshape(n_all, 6, 6)[
+        keep
+    ]  # (row, reading, leg)
     A = A / float(np.sqrt(np.sum(A**2) / max(len(obs), 1)))  # g in σ per unit response
-    s, d, R, vary = _features(st)
+    s, d, R, vary = _features(st)  # standardised over the whole run
+    s, d, R = s[keep], d[keep], R[keep]
 
     # REML: the likelihood of the residuals with the fit's coefficients integrated out
     s0 = float(np.sqrt(np.sum(y**2) / max(len(y) - U.shape[1], 1)))
@@ -294,4 +327,13 @@ def residual_gp(
         converged=bool(ok),
         folds=folds,
         grouped=grouped,
+        rows=keep,
+        rows_total=n_all,
     )
+
+
+def spread_rows(n: int, m: int) -> np.ndarray:
+    """All of range(n) when n ≤ m, else m indices spread evenly from the first to the last."""
+    if n <= m:
+        return np.arange(n)
+    return np.unique(np.round(np.linspace(0, n - 1, m)).astype(int))

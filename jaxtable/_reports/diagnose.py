@@ -243,7 +243,8 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         + ("as stated" if diag.noise_mode == "fixed" else "estimated for each model")
         + ")."
         + (
-            f" A Gaussian-process residual model (`jt.residual_gp`) gains "
+            f" A Gaussian-process residual model (`jt.residual_gp`"
+            f"{diag.residual_model.scope()}) gains "
             f"{100 * diag.residual_model.gain:.1f} % on held-out rows; it depends most on: "
             + "; ".join(diag.residual_model.hints()[:4])
             + "."
