@@ -220,6 +220,47 @@ def test_what_a_reader_cannot_know_is_refused_by_row_and_column(tmp_path, sessio
     assert np.isnan(lost.measured[2, 1]) and np.isfinite(lost.measured[2, [0, 2]]).all()
 
 
+def test_measured_columns_in_other_units_are_refused_by_how_far_they_move(
+    table, sessions, tmp_path
+):
+    """Positions in metres or micrometres and angles in radians (measured or commanded)
+    move 1000× or 57.3× as far as they should between consecutive stops: refused with the
+    columns, the ratio and the suspect unit named, by calibrate, diagnose and validate alike;
+    the right units pass whatever the tracker's frame, with a target 300 mm off the
+    platform's centre and a point tracker that sees no attitude."""
+    from jaxtable._calibration.measurements import check_units
+
+    _, a, b, cal = sessions
+    for data in (a, b):
+        check_units(data)
+    true = jt.perturb_table(table, 2)
+    far = (300.0, -200.0, 80.0, 0.0, 0.0, 0.0)
+    for seed, inst in ((3, jt.point_tracker()), (4, jt.tracker6())):
+        check_units(jt.simulate(table, true, jt.plan_random(40, seed), inst, frame=FRAME_B,
+                                target=far, seed=seed))  # fmt: skip
+    scale = {
+        "metres": (np.r_[1e-3, 1e-3, 1e-3, 1, 1, 1], "measured", r"positions .* 0\.00\d+ times"),
+        "micrometres": (np.r_[1e3, 1e3, 1e3, 1, 1, 1], "measured", r"positions .* 99\d times"),
+        "radians": (np.r_[1, 1, 1, [np.pi / 180] * 3], "measured", r"angles .* 0\.0175 times"),
+        "commanded radians": (np.r_[1, 1, 1, [np.pi / 180] * 3], "cmd_pose", r"angles .* 57\.3 t"),
+    }  # fmt: skip
+    for name, (f, field, pattern) in scale.items():
+        bad = dataclasses.replace(a, **{field: getattr(a, field) * f})
+        with pytest.raises(jt.DataFileError, match=pattern):
+            check_units(bad)
+        if name == "metres":  # each verb refuses before it fits, and writes nothing
+            with pytest.raises(jt.DataFileError, match="are some in metres or micrometres"):
+                jt.calibrate(table, bad)
+            with pytest.raises(jt.DataFileError, match="measured positions"):
+                jt.diagnose(table, bad)
+            with pytest.raises(jt.DataFileError, match="measured positions"):
+                jt.validate(jt.fitted_model(cal, table, a.sessions), bad)
+            path = tmp_path / "m.csv"
+            jt.save_measurements(bad, path)
+            assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 2
+            assert not (tmp_path / "out").exists()
+
+
 # --- commands without cmd_l ------------------------------------------------------------------
 
 

@@ -13,11 +13,15 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._errors import POSE_COLUMNS
 from .._io import read_delimited
+from .._jit import jit
 from .._params import pose_from_file, pose_to_file
+from .._rotation import rotation_log, rotation_matrix
 
 CMD = tuple(f"cmd_{c}" for c in POSE_COLUMNS)
 CMD_L = tuple(f"cmd_l{i}" for i in range(1, 7))
@@ -210,6 +214,63 @@ def load_measurements(path) -> Measurements:
     return Measurements(
         cmd, measured, cmd_l, sigma, opt["temperature"], opt["payload"], session, extra
     )
+
+
+@jit
+def _turn_angles(a, b):
+    """Rotation angle (rad) between attitudes a and b (N, 3) (roll, pitch, yaw, rad)."""
+
+    def one(x, y):
+        R = rotation_matrix(x).T @ rotation_matrix(y)
+        return jnp.linalg.norm(rotation_log(R))
+
+    return jax.vmap(one)(a, b)
+
+
+def check_units(data: Measurements) -> None:
+    """Refuse data whose measured columns move by a different order of magnitude than the
+    commands: positions in metres or micrometres, angles in radians, where the file's units
+    are mm and degrees (in the measured or the commanded columns). Compared between
+    consecutive stops of a session, so the instrument's frame drops out:
+
+    - angles (roll, pitch, yaw all measured): the angle of the rotation between two measured
+      attitudes against the commanded one (turns over 0.1°; equal but for noise, whatever
+      the frame and the target); the median ratio over at least 5 turns within 20× of 1;
+    - positions (x, y, z all measured): the distance between two measured positions against
+      the commanded one (moves over 10 mm); a target off the platform's centre adds its
+      rotation (up to ~0.3 rad × 500 mm), so the median ratio over at least 5 moves must be
+      within 100× of 1 (metres and micrometres are 1000× off).
+
+    Raises DataFileError naming the columns and the ratio."""
+    same = data.session[1:] == data.session[:-1]
+    m, c = data.measured, data.cmd_pose
+    checks = (  # kind, columns, slice, least commanded move, allowed ratio, units, suspects
+        ("angles", "roll, pitch, yaw", slice(3, 6), np.deg2rad(0.1), 20.0, "degrees",
+         "radians (1/57.3 if the measured ones are, 57.3 if the commanded ones are)"),
+        ("positions", "x, y, z", slice(0, 3), 10.0, 100.0, "mm",
+         "metres or micrometres (1/1000 or 1000 if the measured ones are)"),
+    )  # fmt: skip
+    for kind, cols, sl, least, allowed, unit, suspects in checks:
+        ok = same & np.isfinite(m[1:, sl]).all(1) & np.isfinite(m[:-1, sl]).all(1)
+        if ok.sum() < 5:
+            continue
+        if kind == "angles":
+            a, b = np.where(ok[:, None], m[:-1, sl], 0.0), np.where(ok[:, None], m[1:, sl], 0.0)
+            d_meas = np.asarray(_turn_angles(a, b))
+            d_cmd = np.asarray(_turn_angles(c[:-1, sl], c[1:, sl]))
+        else:
+            d_meas = np.linalg.norm(m[1:, sl] - m[:-1, sl], axis=1)
+            d_cmd = np.linalg.norm(c[1:, sl] - c[:-1, sl], axis=1)
+        use = ok & (d_cmd > least)
+        if use.sum() < 5:
+            continue
+        ratio = float(np.median(d_meas[use] / d_cmd[use]))
+        if not 1 / allowed < ratio < allowed:
+            raise DataFileError(
+                f"the measured {kind} ({cols}) move {ratio:.3g} times as far as the "
+                f"commanded ones (median over {int(use.sum())} moves between consecutive "
+                f"stops): the file's unit is {unit}; are some in {suspects}?"
+            )
 
 
 def save_measurements(m: Measurements, path) -> None:
