@@ -32,6 +32,12 @@ def heldout_rms(
     the fit (the tests compare it with refits: the corrections are µm-level, where the model
     is linear to many digits). k refits cost k full fits; this costs one SVD. `rescale`
     (N, 6): factors applied to the held-out residuals (to express them in another fit's σ).
+
+    With U an orthonormal basis of J's columns (r of them), H_FF = U_F U_Fᵀ, and the
+    m × m solve is done in r dimensions (Woodbury): (I − U_F U_Fᵀ)⁻¹ e_F =
+    e_F + U_F G⁻¹ U_Fᵀ e_F, G = I − U_FᵀU_F = U_RᵀU_R over the other rows R (formed from
+    them, not by the subtraction): O(m r²), not O(m³) (a 10,000-stop run's folds hold
+    12,000 readings).
     """
     e = cal.residual.reshape(-1)
     U = fit_basis(cal.jacobian, tol)
@@ -39,7 +45,10 @@ def heldout_rms(
     for rows in folds:
         idx = (rows[:, None] * 6 + np.arange(6)[None, :])[mask[rows]]
         UF = U[idx]
-        x = np.linalg.solve(np.eye(len(idx)) - UF @ UF.T, e[idx])
+        rest = np.ones(len(U), bool)
+        rest[idx] = False
+        UR = U[rest]
+        x = e[idx] + UF @ np.linalg.solve(UR.T @ UR, UF.T @ e[idx])
         if rescale is not None:  # (N, 6) factors: the residuals in other σ units
             x = x * np.asarray(rescale).reshape(-1)[idx]
         sq += float(x @ x)

@@ -116,9 +116,11 @@ def features(st: Setup) -> dict:
 
 def neighbours(x: np.ndarray, k: int, rows: np.ndarray, chunk: int = 1024) -> np.ndarray:
     """(R, k) indices (into `rows`) of the k nearest other rows of each of `rows` in feature
-    space x (N, F); distances in chunks of `chunk` rows (memory R·chunk)."""
+    space x (N, F); distances in chunks of at most `chunk` rows and 2²² numbers (R·F each),
+    so a 10,000-stop run needs tens of MB, not gigabytes."""
     xr = x[rows]
     out = []
+    chunk = max(1, min(chunk, (1 << 22) // max(xr.size, 1)))
     for start in range(0, len(rows), chunk):
         a = xr[start : start + chunk]
         d2 = np.sum((a[:, None, :] - xr[None, :, :]) ** 2, axis=-1)
