@@ -4,6 +4,7 @@ and a fitted model that predicts a new session (the tracker set up anew)."""
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -216,6 +217,15 @@ def test_what_a_reader_cannot_know_is_refused_by_row_and_column(tmp_path, sessio
     assert jt.load_measurements(write("utf8.csv", rows)).session[4] == "Salle \xb0 2"
     with pytest.raises(jt.DataFileError, match="row 3 is a blank line"):
         jt.load_measurements(write("gap.csv", lines[:3] + [""] + lines[3:]))
+    for old, new in (("x", "X [mm]"), ("cmd_roll", "CMD_ROLL"), ("temperature", "temp (C)")):
+        renamed = [",".join(new if h == old else h for h in header)] + lines[1:]
+        if new == "temp (C)":  # not a near miss: kept as an unknown column
+            assert "temp (C)" in jt.load_measurements(write("u.csv", renamed)).extra
+            continue
+        with pytest.raises(
+            jt.DataFileError, match=rf"column '{re.escape(new)}' looks like '{old}'"
+        ):
+            jt.load_measurements(write("u.csv", renamed))
     lost = jt.load_measurements(write("lost.csv", edit(3, "y", "")))
     assert np.isnan(lost.measured[2, 1]) and np.isfinite(lost.measured[2, [0, 2]]).all()
 

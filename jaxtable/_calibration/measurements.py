@@ -10,6 +10,7 @@ written back unchanged. Angles are degrees in the file and radians in memory.
 
 import csv
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -133,6 +134,13 @@ def _cell(value: str, row: int, col: str, path, required: bool) -> float:
     return x
 
 
+def _plain_name(h: str) -> str:
+    """A header without case, a unit in brackets or after the name ("X [mm]", "Roll (deg)",
+    "cmd_x_mm" -> "x", "roll", "cmd_x"), for spotting near misses of the schema's names."""
+    name = re.sub(r"\s*[\[(].*[\])]\s*$", "", h.strip().lower())
+    return re.sub(r"_(mm|deg|degrees|rad|degc|kg)$", "", name).strip().replace(" ", "_")
+
+
 def _sessions(cells: list[str]) -> np.ndarray:
     """Session labels with the blank-cell rule: a blank cell continues the session of the
     row before it (a tracker is set up anew only where a label says so); blank cells before
@@ -165,6 +173,15 @@ def load_measurements(path) -> Measurements:
     dup = {h for h in header if header.count(h) > 1}
     if dup:
         raise DataFileError(f"{path}: repeated column(s) {', '.join(sorted(dup))}")
+    known = CMD + CMD_L + MEASURED + SIGMA + OPTIONAL + ("session",)
+    for h in header:
+        name = _plain_name(h)
+        if h not in known and name in known and name not in header:
+            raise DataFileError(
+                f"{path}: column '{h}' looks like '{name}': column names are lower case and "
+                "carry no unit (the units are fixed: mm, degrees, °C, kg); rename it, or it "
+                "would be kept as an unknown column and not read"
+            )
     missing = [c for c in CMD if c not in header]
     if missing:
         raise DataFileError(f"{path}: missing commanded-pose column(s) {', '.join(missing)}")
