@@ -154,8 +154,9 @@ def _simulate(args) -> int:
 
 
 def _calibrate(args) -> int:
-    from ._calibration.fit import fit, setup
+    from ._calibration.fit import fit_screened
     from ._calibration.measurements import load_measurements
+    from ._calibration.outliers import without
     from ._calibration.posterior import posterior, predictive_bands
     from ._calibration.simulate import plan_x_line
     from ._discovery.structure import structure_test
@@ -166,17 +167,19 @@ def _calibrate(args) -> int:
     free = tuple(f.strip() for f in args.free.split(",") if f.strip())
     print(f"calibrating {', '.join(free)} on {len(data)} rows ...", file=sys.stderr)
     try:
-        st = setup(
+        st, cal = fit_screened(
             table,
             data,
             free,
             compensated=args.compensated,
             estimate_frame=not args.no_frame,
             sigma=_sigma_arg(args.sigma),
+            noise=args.noise,
+            outliers="keep" if args.keep_outliers else "set_aside",
         )
-        cal = fit(st, noise=args.noise)
     except ValueError as e:
         raise UsageError(f"{args.data}: {e}") from None
+    data = without(data, cal.set_aside or [])  # what was fitted
     post = bands = None
     if args.mcmc:
         post = posterior(st, cal, n_steps=args.steps, seed=0, progress=True)
@@ -234,10 +237,16 @@ def _diagnose(args) -> int:
             noise=args.noise,
             sigma=_sigma_arg(args.sigma),
             folds=args.folds,
+            outliers="keep" if args.keep_outliers else "set_aside",
         )
     except ValueError as e:
         raise UsageError(f"{source}: {e}") from None
     paths = write_report(diag, out, source, json_path)
+    if diag.set_aside:
+        print(
+            f"{len(diag.set_aside)} reading(s) set aside as gross errors: "
+            + "; ".join(g.words() for g in diag.set_aside)
+        )
     print(
         f"selected: {', '.join(map(form_label, diag.selected_forms)) or 'none'}; unexplained: "
         f"{str(diag.unexplained).lower()}; RMS {diag.rms_before:.3f} -> {diag.rms_after:.3f} "
@@ -480,6 +489,15 @@ def build_parser() -> argparse.ArgumentParser:
             "stated σ",
         )
 
+    def outlier_options(sp):
+        sp.add_argument(
+            "--keep-outliers",
+            action="store_true",
+            help="fit every reading (default: readings the fit cannot reconcile with the rest "
+            "are found by data snooping with a robust scale, family-wise false-alarm rate "
+            "1 %%, set aside as not measured and named in the report)",
+        )
+
     def compensation(sp, default=None, what="without cmd_l columns: the controller"):
         """--compensated / --uncompensated, the same pair in every verb (DESIGN.md: without
         cmd_l columns on a table with a lead, the user must say which)."""
@@ -571,6 +589,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     compensation(sp)
     noise_options(sp, "estimate")
+    outlier_options(sp)
     sp.add_argument(
         "--mcmc",
         action="store_true",
@@ -599,6 +618,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--effects", default="", help="candidate effects (default: the whole library)")
     compensation(sp)
     noise_options(sp, "estimate")
+    outlier_options(sp)
     sp.add_argument(
         "--alpha",
         type=float,

@@ -20,7 +20,7 @@ from scipy.stats import binom
 import jaxtable as jt
 from jaxtable._calibration.fit import fit, residual_jit
 from jaxtable._calibration.instruments import tracker6
-from jaxtable._calibration.measurements import save_measurements
+from jaxtable._calibration.measurements import load_measurements, save_measurements
 from jaxtable._calibration.simulate import perturb_table, plan_random, simulate
 from jaxtable._discovery.diagnose import diagnose, heldout_rms, make_folds
 from jaxtable.cli import main
@@ -330,6 +330,30 @@ def example_data():
 def test_bundled_example_is_reproducible(tmp_path):
     save_measurements(example_data(), tmp_path / "example.csv")
     assert (tmp_path / "example.csv").read_text() == EXAMPLE.read_text()
+
+
+def test_gross_errors_are_set_aside_and_the_diagnosis_made_without_them(tmp_path, capsys):
+    """The bundled example with a broken beam (x +0.8 mm at row 21) and a 0.01° pitch
+    glitch at row 100: the command line names both readings with their whole error, the
+    JSON lists them, and the diagnosis is the one of the clean file (the same selection);
+    with --keep-outliers nothing is set aside."""
+    data = load_measurements(EXAMPLE)
+    m = data.measured.copy()
+    m[20, 0] += 0.8
+    m[99, 4] += np.deg2rad(0.01)
+    path = tmp_path / "glitch.csv"
+    save_measurements(dataclasses.replace(data, measured=m), path)
+    out = tmp_path / "d"
+    assert main(["diagnose", str(path), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "2 reading(s) set aside as gross errors: row 21 x +0.79" in printed, printed
+    doc = json.loads((out / "diagnosis.json").read_text())
+    assert [(g["row"], g["column"]) for g in doc["set_aside"]] == [(21, "x"), (100, "pitch")]
+    assert abs(doc["set_aside"][1]["residual"] - 0.01) < 0.002
+    assert doc["selected_forms"] == ["spiral[all]", "backlash"]
+    assert "set aside as gross errors" in (out / "report.md").read_text()
+    assert main(["diagnose", str(path), "--out", str(out), "--keep-outliers"]) == 0
+    assert json.loads((out / "diagnosis.json").read_text())["set_aside"] is None
 
 
 def test_diagnose_cli_on_the_bundled_example(tmp_path, capsys):

@@ -28,6 +28,7 @@ from .. import _params as params
 from .._api import actuator_command
 from .._context import Context, directions, run_time
 from .._effects import resolve_effects
+from .._errors import POSE_COLUMNS
 from .._forward import RESULTS, ForwardOptions, forward_one
 from .._jit import jit
 from .._kinematics import in_stroke
@@ -38,6 +39,8 @@ from .instruments import observe
 from .measurements import Measurements, check_units
 from .noise import NoiseEstimate, NoiseModel, group_scales, noise_model
 from .noise import estimate as noise_estimate
+from .outliers import ALPHA, GrossError, without
+from .outliers import screen as screen_gross_errors
 
 JOINTS = params.JOINTS
 COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
@@ -424,6 +427,11 @@ class Calibration:
     rows_skipped: int = 0  # rows with nothing measured (not fitted)
     rms_sigma_before: float = float("nan")
     rms_sigma_after: float = float("nan")
+    # readings set aside as gross errors before this fit (`outliers.GrossError`, largest
+    # first), and how many readings the screen could not test (redundancy too low); None:
+    # not screened (outliers="keep", or a fit not made by `calibrate`)
+    set_aside: list | None = None
+    untested: int = 0
 
     @property
     def rms_columns_before(self) -> dict:
@@ -456,6 +464,21 @@ class Calibration:
             lines += self.noise.lines()
         if self.rows_skipped:
             lines.append(f"{self.rows_skipped} row(s) with nothing measured: skipped")
+        if self.set_aside:
+            shown = "; ".join(g.words() for g in self.set_aside[:10])
+            more = f"; ... and {len(self.set_aside) - 10} more" if len(self.set_aside) > 10 else ""
+            lines.append(
+                f"{len(self.set_aside)} reading(s) set aside as gross errors (measured − "
+                f"model, in robust σ; family-wise false-alarm rate {ALPHA:g}): {shown}{more}; "
+                "fitted without them (outliers='keep' / --keep-outliers fits every reading)"
+            )
+        elif self.set_aside is not None:
+            lines.append("gross errors: none (every reading agrees with the fit)")
+        if self.set_aside is not None and self.untested:
+            lines.append(
+                f"{self.untested} reading(s) the fit would absorb whatever their error "
+                "(redundancy < 0.05): not tested for gross errors"
+            )
         if self.layout.frame_dofs and len(self.layout.frame_dofs) < 6:
             seen = [params.POSE[k] for k in self.layout.frame_dofs]
             unseen = [c for k, c in enumerate(params.POSE) if k not in self.layout.frame_dofs]
@@ -893,7 +916,9 @@ def _fit_once(
         corr = cov / np.outer(np.sqrt(np.diag(cov)), np.sqrt(np.diag(cov)))
     table, effects_fit, frame, target = build_model(problem, layout, value)
     cols = [c for k, c in enumerate(COLUMNS) if mask[:, k].any()]
-    sig = np.where(mask, 1.0 / np.where(mask, np.asarray(problem.weight), 1.0), np.nan)
+    w_fit = np.asarray(problem.weight)
+    on = mask & (w_fit > 0)  # a reading given zero weight (set aside) is not fitted
+    sig = np.where(on, 1.0 / np.where(on, w_fit, 1.0), np.nan)
 
     def rms(res):
         r = res * sig  # back to physical units
@@ -956,6 +981,7 @@ def calibrate(
     atol: float = 1e-8,
     max_steps: int = 200,
     method: str = "gauss_newton",
+    outliers: str = "set_aside",
 ) -> "Calibration":
     """Fit the `free` parameters (table leaves: base_joints, platform_joints, zero_lengths,
     ...; effect fields: "spiral.lead", ...; a shared field as one number for all legs:
@@ -972,8 +998,11 @@ def calibrate(
     `sigma`: {column: σ (mm / rad)} stated by the user (else the file's σ columns, if any);
     `noise`: "estimate" (default: the σ of each group of columns is estimated from the fit,
     and a stated σ is tested against it) or "fixed" (trust the stated σ); see `fit`.
+    `outliers`: "set_aside" (default: readings the fit cannot reconcile with the rest are
+    found by data snooping with a robust scale, set aside as not measured, and the model
+    refitted; `Calibration.set_aside` names them; see `outliers`) or "keep".
     """
-    st = setup(
+    return fit_screened(
         nominal,
         data,
         free,
@@ -981,13 +1010,71 @@ def calibrate(
         compensated=compensated,
         estimate_frame=estimate_frame,
         sigma=sigma,
-    )
-    return fit(
-        st,
         noise=noise,
         identifiability_tol=identifiability_tol,
         rtol=rtol,
         atol=atol,
         max_steps=max_steps,
         method=method,
-    )
+        outliers=outliers,
+    )[1]
+
+
+def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_aside", **kw):
+    """`calibrate` returning (set-up, fit): with outliers="set_aside" the set-up of the data
+    with the gross errors set aside (`outliers.without`), which the fit was made on. `kw`:
+    `setup`'s keywords (effects, compensated, estimate_frame, sigma) and `fit`'s."""
+    if outliers not in OUTLIERS:
+        raise ValueError(f"outliers must be one of {OUTLIERS}; got {outliers!r}")
+    setup_kw = {
+        k: kw.pop(k) for k in ("effects", "compensated", "estimate_frame", "sigma") if k in kw
+    }
+
+    def run(d):
+        st = setup(nominal, d, free, **setup_kw)
+        return st, fit(st, **kw)
+
+    st, cal = run(data)
+    if outliers == "keep":
+        return st, cal
+    return set_aside_gross_errors(data, st, cal, run, setup_kw.get("compensated"))
+
+
+OUTLIERS = ("set_aside", "keep")
+
+
+def set_aside_gross_errors(
+    data: Measurements, st: "Setup", cal: "Calibration", run, compensated, rounds: int = 100
+):
+    """Screen fit `cal` of `data` (set-up `st`) for gross errors (`outliers.screen`); while
+    one is found, set it aside (not measured) and refit with `run(data) -> (setup, fit)`.
+    Returns the last (set-up, fit), the fit with `set_aside` (`GrossError`s, largest first,
+    each with its residual from that fit) and `untested`."""
+    found = []
+    untested = 0
+    original = data
+    for _ in range(rounds):
+        groups = np.asarray(st.noise.groups) if st.noise is not None else np.zeros((len(data), 6))
+        new, _, untested = screen_gross_errors(cal, st.mask, groups)
+        if new is None:
+            break
+        found.append(new)
+        data = without(data, [new[:2]])
+        st, cal = run(data)
+    if found:
+        # measured − model of the readings set aside, from the final fit (not fitted there);
+        # on every row, so that the sessions keep their frames
+        problem = make_problem(
+            st.problem.nominal, original, cal.effects_nominal, cal.bases, compensated
+        )
+        res = np.asarray(residual_jit(cal.theta, (problem, cal.layout))).reshape(-1, 6)
+        w = np.asarray(problem.weight)
+        out = []
+        for r, c, z in found:
+            value = -float(res[r, c] / w[r, c])
+            value = value if c < 3 else float(np.rad2deg(value))
+            out.append(GrossError(r + 1, POSE_COLUMNS[c], value, z))
+        found = sorted(out, key=lambda g: -abs(g.z))
+    cal.set_aside = found
+    cal.untested = untested
+    return st, cal

@@ -47,10 +47,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _params as params
-from .._calibration.fit import Calibration, Setup, fit, setup
+from .._calibration.fit import OUTLIERS, Calibration, Setup, fit, residual_jit, setup
 from .._calibration.heldout import heldout_rms, make_folds
 from .._calibration.measurements import Measurements
+from .._calibration.outliers import GrossError, without
+from .._calibration.outliers import screen as screen_gross_errors
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
+from .._errors import POSE_COLUMNS
 from .._jit import jit
 from .._table import Table
 from .._threads import one_blas_thread
@@ -288,6 +291,8 @@ class Diagnosis:
     # when structure remains unexplained: the GP residual model of the final fit (`gp.py`),
     # what a flexible model gains on held-out rows and what it depends on (hints)
     residual_model: ResidualGP | None = None
+    # readings set aside as gross errors (`outliers.GrossError`, largest first); None: kept
+    set_aside: list | None = None
 
     @property
     def rms_sigma_before(self) -> float:
@@ -362,6 +367,12 @@ class Diagnosis:
                 "groups": None if self.final.noise is None else self.final.noise.as_json(),
             },
             "structure": None if self.structure is None else self.structure.as_json(),
+            "set_aside": None
+            if self.set_aside is None
+            else [
+                {"row": g.row, "column": g.column, "residual": g.residual, "z": g.z}
+                for g in self.set_aside
+            ],
             "residual_model": None
             if self.residual_model is None
             else {
@@ -432,6 +443,7 @@ def diagnose(
     max_terms: int = 3,
     ambiguity: float = 6.0,
     priority: float = 10.0,
+    outliers: str = "set_aside",
 ) -> Diagnosis:
     """Find which library effects the data need beyond the geometric model.
 
@@ -466,6 +478,12 @@ def diagnose(
     residual model of the final fit (`gp.residual_gp`; `flexible=False` skips it) says what
     a flexible model would gain on held-out rows and what the residuals depend on
     (`residual_model`, its `hints()`).
+
+    `outliers`: "set_aside" (default; the rule `calibrate` follows): the final model is
+    screened for gross errors (`_calibration.outliers`; refitting it without each one found
+    in turn); if any, they are set aside (not measured) and the diagnosis is made again on
+    the data without them (`set_aside` names them; their residuals are from the final model
+    fitted without them). "keep": every reading is fitted.
     """
     if isinstance(nominal, Measurements) and isinstance(data, Table):
         warnings.warn(
@@ -475,6 +493,26 @@ def diagnose(
         )
         nominal, data = data, nominal
     log = log or (lambda msg: print(msg, file=sys.stderr))
+    if outliers not in OUTLIERS:
+        raise ValueError(f"outliers must be one of {OUTLIERS}; got {outliers!r}")
+    if outliers == "set_aside":
+        kw = {k: v for k, v in locals().items() if k in _DIAGNOSE_KEYWORDS}
+        set_aside = []
+        for _ in range(3):
+            diag = diagnose(nominal, data, **{**kw, "outliers": "keep"})
+            found = _final_gross_errors(diag)
+            set_aside += found
+            if not found:
+                break
+            log(
+                f"{len(found)} reading(s) set aside as gross errors: "
+                + "; ".join(g.words() for g in found[:5])
+                + ("; ..." if len(found) > 5 else "")
+                + " — diagnosing again without them"
+            )
+            data = without(data, found)
+        diag.set_aside = sorted(set_aside, key=lambda g: -abs(g.z))
+        return diag
     library = list(EFFECTS) if library is None else list(library)
     for name in list(base) + library:
         if name not in EFFECTS:
@@ -775,6 +813,44 @@ def diagnose(
         nominal=nominal,
         residual_model=residual_model,
     )
+
+
+_DIAGNOSE_KEYWORDS = (
+    "base library compensated alpha bic_threshold min_gain min_share folds max_effects seed "
+    "log noise sigma draws discover discovery_alpha flexible max_terms ambiguity priority"
+).split()
+
+
+def _final_gross_errors(diag: "Diagnosis") -> list:
+    """Gross errors of the diagnosis's final model (`outliers.screen`), the largest first:
+    found one at a time, the final model refitted without each (zero weight) before the
+    next is sought; each with its residual from the last refit (measured − model)."""
+    st, cal = diag.setup, diag.final
+    free = np.array([1.0 if n in cal.names else 0.0 for n in st.names])
+    groups = np.asarray(st.noise.groups) if st.noise is not None else np.zeros(st.mask.shape)
+    mask = np.array(st.mask, bool)
+    weight = np.asarray(st.problem.weight, float).copy()
+    cells = []
+    for _ in range(100):
+        new, _, _ = screen_gross_errors(cal, mask, groups)
+        if new is None:
+            break
+        r, c, _ = new
+        cells.append(new)
+        mask[r, c] = False
+        weight[r, c] = 0.0
+        cal = fit(st, free, weight=weight, noise=diag.noise_mode)
+    if not cells:
+        return []
+    res = np.asarray(residual_jit(cal.theta, (st.problem, st.layout))).reshape(-1, 6)
+    stated = np.asarray(st.problem.weight)
+    out = []
+    for r, c, z in cells:
+        value = -float(res[r, c] / stated[r, c])
+        out.append(
+            GrossError(r + 1, POSE_COLUMNS[c], value if c < 3 else float(np.rad2deg(value)), z)
+        )
+    return out
 
 
 # --- signatures: leg-space views of the residuals (for the report) --------------------------

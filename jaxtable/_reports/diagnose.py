@@ -228,6 +228,18 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         "joints modulo the rigid motions the instrument frame absorbs) + instrument frame per "
         "session and target offset.",
         "",
+        *(
+            [
+                f"**{len(diag.set_aside)} reading(s) set aside as gross errors** (measured − "
+                "model fitted without them; data snooping with a robust scale, family-wise "
+                "false-alarm rate 1 %; `--keep-outliers` fits them): "
+                + "; ".join(g.words() for g in diag.set_aside)
+                + ".",
+                "",
+            ]
+            if diag.set_aside
+            else []
+        ),
         "**Selected effects:** "
         + (", ".join(map(vocab.form_label, diag.selected_forms)) or "none")
         + ". "

@@ -1,0 +1,98 @@
+"""Gross errors in measured data: readings a fit cannot reconcile with the rest (a tracker's
+beam broken for one reading, a target re-seated, a value typed into the wrong row).
+
+The test is data snooping with a robust scale. For every fitted reading i the studentised
+residual w_i = e_i / √r_i (e_i the σ-normalised residual, r_i = 1 − H_ii its redundancy
+number: the part of an error the fit cannot absorb) is divided by its noise group's robust
+scale, 1.4826 × the median |w| over the group (a few gross errors do not inflate it, as they
+do the fit's σ). Readings beyond the two-sided normal quantile at α / (2 M) (M tested
+readings: a family-wise false-alarm rate α on clean data; Student's t rather than the normal
+law, for the scale's own error) are gross errors; per round only the largest (beyond its
+bound) is set aside (a gross error pulls the fit, and with it readings that are fine:
+a 1 mm error in one x reading moved ten others past the bound), the model is refitted and
+the test repeated until none is left. Each is then reported with its residual from the
+final model, fitted without it (the whole error, not the part the fit left). Readings with a
+redundancy under `MIN_REDUNDANCY` are not tested: the fit absorbs an error there, whatever
+its size (the report counts them).
+"""
+
+from dataclasses import dataclass, replace
+from statistics import NormalDist
+
+import numpy as np
+
+from .._errors import POSE_COLUMNS
+
+MIN_REDUNDANCY = 0.05
+ALPHA = 0.01
+
+
+@dataclass(frozen=True)
+class GrossError:
+    """One reading set aside: `row` (1 = the first data row), `column` (x … yaw),
+    `residual` (measured − model, mm or degrees), `z` (studentised, in robust σ)."""
+
+    row: int
+    column: str
+    residual: float
+    z: float
+
+    def words(self) -> str:
+        unit = "mm" if self.column in POSE_COLUMNS[:3] else "°"
+        return f"row {self.row} {self.column} {self.residual:+.4g} {unit} ({self.z:+.0f}σ)"
+
+
+def without(data, cells):
+    """`data` (Measurements) with the readings `cells` — (row index, column index) pairs or
+    `GrossError`s (1-based rows, column names) — set to not measured (NaN); a copy."""
+    measured = np.array(data.measured, float)
+    for cell in cells:
+        if isinstance(cell, GrossError):
+            cell = (cell.row - 1, POSE_COLUMNS.index(cell.column))
+        measured[cell[0], cell[1]] = np.nan
+    return replace(data, measured=measured)
+
+
+def threshold(tested: int, alpha: float = ALPHA, group: int | None = None) -> float:
+    """|z| beyond which a reading is a gross error: the two-sided quantile at α / (2 M) for
+    M tested readings, of Student's t with the degrees of freedom of a median-based scale
+    from `group` readings (0.37 per reading, the median's efficiency at the normal law; the
+    normal law when `group` is None). With the normal quantile, the scale's own error
+    (about 8 % from 180 readings) raised the false-alarm rate to 2.2 % (1000 clean data
+    sets of 60 stops)."""
+    q = 1.0 - alpha / (2.0 * max(tested, 1))
+    if group is None:
+        return NormalDist().inv_cdf(q)
+    from scipy.stats import t
+
+    return float(t.ppf(q, max(0.37 * group, 3.0)))
+
+
+def screen(cal, mask: np.ndarray, groups: np.ndarray, alpha: float = ALPHA):
+    """The largest gross error of fit `cal` (a `Calibration` with its residuals, weights and
+    redundancy numbers) over the fitted readings `mask` (N, 6), noise `groups` (N, 6)
+    (−1: none), if any.
+
+    Returns ((row index, column index, z) or None; readings tested; readings not testable).
+    z is measured − model in robust σ."""
+    n = mask.shape[0]
+    e = np.asarray(cal.residual, float).reshape(n, 6)
+    red = np.asarray(cal.redundancy, float).reshape(n, 6)
+    fitted = mask & (np.asarray(cal.weight) > 0)
+    testable = fitted & (red >= MIN_REDUNDANCY)
+    w = np.where(testable, e / np.sqrt(np.where(testable, red, 1.0)), 0.0)
+    z = np.zeros_like(w)
+    bound = np.full(w.shape, np.inf)
+    tested = int(testable.sum())
+    for g in np.unique(groups[testable]):
+        cells = testable & (groups == g)
+        scale = 1.4826 * np.median(np.abs(w[cells]))
+        if scale > 0:
+            z[cells] = w[cells] / scale
+            bound[cells] = threshold(tested, alpha, int(cells.sum()))
+    untested = int((fitted & ~testable).sum())
+    r, c = np.unravel_index(np.argmax(np.abs(z) - bound), z.shape)
+    if not abs(z[r, c]) > bound[r, c]:
+        return None, tested, untested
+    # residual = model − measured; z as measured − model
+    return (int(r), int(c), -float(z[r, c])), tested, untested
