@@ -356,6 +356,19 @@ def test_gross_errors_are_set_aside_and_the_diagnosis_made_without_them(tmp_path
     assert json.loads((out / "diagnosis.json").read_text())["set_aside"] is None
 
 
+def test_an_unmodelled_drift_is_structure_not_gross_errors():
+    """A thermal drift the geometric model misses leaves readings far out (6.6 robust σ):
+    the residuals show structure, so the gross-error screen does not run and says why;
+    diagnose left without the thermal effect (an empty library) sets nothing aside either
+    (with the screen run regardless, 52 readings of this case were set aside)."""
+    nominal, data, _ = case("thermal", 0)
+    cal = jt.calibrate(nominal, data)
+    assert cal.set_aside == [] and cal.screen_skipped, cal.set_aside
+    assert "gross errors: not screened: the residuals show structure" in cal.report()
+    diag = diagnose(nominal, data, log=_quiet, library=[], discover=False)
+    assert diag.unexplained and diag.set_aside == []
+
+
 def test_diagnose_cli_on_the_bundled_example(tmp_path, capsys):
     out = tmp_path / "diag"
     assert main(["diagnose", "--out", str(out), "--json", str(tmp_path / "d.json")]) == 0

@@ -432,6 +432,8 @@ class Calibration:
     # not screened (outliers="keep", or a fit not made by `calibrate`)
     set_aside: list | None = None
     untested: int = 0
+    crowded: int = 0  # readings beyond the bound whose neighbours are too: structure, kept
+    screen_skipped: str = ""  # why the screen did not run (structure the model misses)
 
     @property
     def rms_columns_before(self) -> dict:
@@ -472,8 +474,21 @@ class Calibration:
                 f"model, in robust σ; family-wise false-alarm rate {ALPHA:g}): {shown}{more}; "
                 "fitted without them (outliers='keep' / --keep-outliers fits every reading)"
             )
+        elif self.screen_skipped:
+            lines.append(
+                "gross errors: not screened: the residuals show structure the model misses ("
+                + self.screen_skipped
+                + "), and a gross error cannot be told from it; fit a model that explains "
+                "them (jaxtable diagnose)"
+            )
         elif self.set_aside is not None:
             lines.append("gross errors: none (every reading agrees with the fit)")
+        if self.set_aside is not None and self.crowded:
+            lines.append(
+                f"{self.crowded} reading(s) far from the model whose neighbours (in time and in "
+                "the legs' extensions) are far out the same way: structure the model misses, "
+                "not gross errors; kept"
+            )
         if self.set_aside is not None and self.untested:
             lines.append(
                 f"{self.untested} reading(s) the fit would absorb whatever their error "
@@ -1050,12 +1065,20 @@ def set_aside_gross_errors(
     one is found, set it aside (not measured) and refit with `run(data) -> (setup, fit)`.
     Returns the last (set-up, fit), the fit with `set_aside` (`GrossError`s, largest first,
     each with its residual from that fit) and `untested`."""
+    from .._discovery.structure import structure_test
+
     found = []
-    untested = 0
+    untested = crowded = 0
     original = data
+    test = structure_test(cal, st)
+    if test.structure:  # data snooping needs a model that fits: not screened
+        cal.set_aside, cal.screen_skipped = [], test.words()
+        return st, cal
     for _ in range(rounds):
         groups = np.asarray(st.noise.groups) if st.noise is not None else np.zeros((len(data), 6))
-        new, _, untested = screen_gross_errors(cal, st.mask, groups)
+        new, _, untested, crowded = screen_gross_errors(
+            cal, st.mask, groups, st.problem.s, st.problem.session
+        )
         if new is None:
             break
         found.append(new)
@@ -1077,4 +1100,5 @@ def set_aside_gross_errors(
         found = sorted(out, key=lambda g: -abs(g.z))
     cal.set_aside = found
     cal.untested = untested
+    cal.crowded = crowded
     return st, cal

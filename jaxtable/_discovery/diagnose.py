@@ -479,7 +479,8 @@ def diagnose(
     a flexible model would gain on held-out rows and what the residuals depend on
     (`residual_model`, its `hints()`).
 
-    `outliers`: "set_aside" (default; the rule `calibrate` follows): the final model is
+    `outliers`: "set_aside" (default; the rule `calibrate` follows): unless structure is
+    left unexplained (then a gross error cannot be told from it), the final model is
     screened for gross errors (`_calibration.outliers`; refitting it without each one found
     in turn); if any, they are set aside (not measured) and the diagnosis is made again on
     the data without them (`set_aside` names them; their residuals are from the final model
@@ -500,7 +501,8 @@ def diagnose(
         set_aside = []
         for _ in range(3):
             diag = diagnose(nominal, data, **{**kw, "outliers": "keep"})
-            found = _final_gross_errors(diag)
+            # data snooping needs a model that fits: not where structure is left unexplained
+            found = [] if diag.unexplained else _final_gross_errors(diag)
             set_aside += found
             if not found:
                 break
@@ -832,7 +834,7 @@ def _final_gross_errors(diag: "Diagnosis") -> list:
     weight = np.asarray(st.problem.weight, float).copy()
     cells = []
     for _ in range(100):
-        new, _, _ = screen_gross_errors(cal, mask, groups)
+        new, _, _, _ = screen_gross_errors(cal, mask, groups, st.problem.s, st.problem.session)
         if new is None:
             break
         r, c, _ = new
