@@ -474,6 +474,8 @@ class Calibration:
                 f"model, in robust σ; family-wise false-alarm rate {ALPHA:g}): {shown}{more}; "
                 "fitted without them (outliers='keep' / --keep-outliers fits every reading)"
             )
+        elif self.screen_skipped.startswith("the structure test needs"):
+            lines.append(f"gross errors: not screened ({self.screen_skipped})")
         elif self.screen_skipped:
             lines.append(
                 "gross errors: not screened: the residuals show structure the model misses ("
@@ -1070,9 +1072,13 @@ def set_aside_gross_errors(
     found = []
     untested = crowded = 0
     original = data
-    test = structure_test(cal, st)
-    if test.structure:  # data snooping needs a model that fits: not screened
-        cal.set_aside, cal.screen_skipped = [], test.words()
+    try:
+        test = structure_test(cal, st)
+        skip = test.words() if test.structure else ""
+    except ValueError as e:  # too few rows to test (or to screen)
+        skip = str(e)
+    if skip:  # data snooping needs a model that fits: not screened
+        cal.set_aside, cal.screen_skipped = [], skip
         return st, cal
     for _ in range(rounds):
         groups = np.asarray(st.noise.groups) if st.noise is not None else np.zeros((len(data), 6))
