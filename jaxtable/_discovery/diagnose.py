@@ -37,6 +37,7 @@ effects sit in the model at their null values and the free set and the fitted ro
 traced masks.
 """
 
+import inspect
 import math
 import sys
 import warnings
@@ -817,10 +818,12 @@ def diagnose(
     )
 
 
-_DIAGNOSE_KEYWORDS = (
-    "base library compensated alpha bic_threshold min_gain min_share folds max_effects seed "
-    "log noise sigma draws discover discovery_alpha flexible max_terms ambiguity priority"
-).split()
+# diagnose's keywords, passed on when it diagnoses again without the gross errors
+_DIAGNOSE_KEYWORDS = [
+    p.name
+    for p in inspect.signature(diagnose).parameters.values()
+    if p.kind is p.KEYWORD_ONLY and p.name != "outliers"
+]
 
 
 def _final_gross_errors(diag: "Diagnosis") -> list:
