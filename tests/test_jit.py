@@ -109,8 +109,10 @@ def test_small_batches_compile_quick_and_large_ones_keep_the_defaults(table, mon
 
 
 def test_a_fit_gives_the_same_result_either_way(table, monkeypatch):
-    """The calibration fit program compiled both ways: the same optimum, step count and
-    covariance to rounding."""
+    """The calibration fit program compiled both ways: the same optimum and covariance to
+    rounding. The step count may differ by one: the two code generations round
+    differently, and a change near the stopping rule's tolerance can fall either side
+    (seen: 5 steps quick, 4 default, optima 2.4e-12 apart)."""
     true = jt.perturb_table(table, seed=3)
     data = jt.simulate(table, true, jt.plan_random(40, seed=4), jt.tracker6(), seed=5)
     st = jt.setup(table, data, ("zero_lengths", "platform_joints"))
@@ -118,6 +120,6 @@ def test_a_fit_gives_the_same_result_either_way(table, monkeypatch):
     quick = jt.fit(st)
     monkeypatch.setenv(_jit.ENV, "0")
     default = jt.fit(st)
-    assert quick.steps == default.steps
+    assert abs(quick.steps - default.steps) <= 1
     np.testing.assert_allclose(quick.value, default.value, rtol=0, atol=1e-9)
     np.testing.assert_allclose(quick.covariance, default.covariance, rtol=1e-8, atol=1e-18)
