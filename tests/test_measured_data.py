@@ -5,6 +5,7 @@ and a fitted model that predicts a new session (the tracker set up anew)."""
 import dataclasses
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -269,6 +270,105 @@ def test_measured_columns_in_other_units_are_refused_by_how_far_they_move(
             jt.save_measurements(bad, path)
             assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 2
             assert not (tmp_path / "out").exists()
+
+
+def _shifted(data, rows):
+    """`data` with the measured columns moved down `rows` rows (a reading logged `rows`
+    stops late; negative: early), the cells left without a reading not measured."""
+    m = np.full_like(data.measured, np.nan)
+    if rows > 0:
+        m[rows:] = data.measured[:-rows]
+    else:
+        m[:rows] = data.measured[-rows:]
+    return dataclasses.replace(data, measured=m)
+
+
+def _row_lost(data, row):
+    """`data` as two logs joined line by line when the measurement log lost 0-based `row`:
+    every measured row from there on belongs to the next commanded row."""
+    m = data.measured.copy()
+    m[row:-1] = data.measured[row + 1 :]
+    m[-1] = np.nan
+    return dataclasses.replace(data, measured=m)
+
+
+def test_measured_rows_shifted_against_the_commands_are_refused(table, sessions, tmp_path):
+    """A reading logged a stop late or early, or a row lost from one of two joined logs:
+    the turns between consecutive measured attitudes agree with the commanded turns at the
+    shifted rows, not at their own; refused by every verb before it fits, naming the
+    session, the shift and (for a lost row) where it starts."""
+    from jaxtable._calibration.measurements import check_alignment
+
+    _, a, b, cal = sessions
+    two = jt.load_measurements(_joined(a, b, tmp_path))
+    for data in (a, b, two):
+        check_alignment(data)
+    cases = {  # how the rows moved: what the message must say
+        "late": (_shifted(a, 1), r"session 'A'.* 1 row\(s\) earlier .* row r-1"),
+        "early": (_shifted(a, -1), r"session 'A'.* 1 row\(s\) later .* row r\+1"),
+        "two late": (_shifted(a, 2), r"session 'A'.* 2 row\(s\) earlier .* row r-2"),
+        "row 41 lost": (_row_lost(a, 40), r"from about row 4[12] on \(session 'A'\).* r\+1"),
+    }
+    for name, (data, pattern) in cases.items():
+        with pytest.raises(jt.DataFileError, match=pattern):
+            check_alignment(data)
+    # in the second session of a file: named as that session's, the first one untouched
+    late_b = dataclasses.replace(
+        two, measured=np.concatenate([a.measured, _shifted(b, 1).measured])
+    )
+    with pytest.raises(jt.DataFileError, match=r"session 'B'.* 1 row\(s\) earlier"):
+        check_alignment(late_b)
+    bad = cases["row 41 lost"][0]
+    with pytest.raises(jt.DataFileError, match="row lost from one of two joined logs"):
+        jt.calibrate(table, bad)
+    with pytest.raises(jt.DataFileError, match="from about row"):
+        jt.validate(jt.fitted_model(cal, table, a.sessions), bad)
+    path = tmp_path / "shifted.csv"
+    jt.save_measurements(bad, path)
+    assert main(["diagnose", str(path), "--out", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out").exists()
+
+
+def _joined(a, b, tmp_path):
+    pa, pb, both = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "ab.csv"
+    jt.save_measurements(a, pa)
+    jt.save_measurements(b, pb)
+    lines = pa.read_text().splitlines() + pb.read_text().splitlines()[1:]
+    both.write_text("\n".join(lines) + "\n")
+    return both
+
+
+def test_aligned_data_are_not_refused_whatever_the_plan_instrument_or_errors(table, sessions):
+    """No refusal of rows in order: random, grid, swing and x-line plans; 6-D tracker,
+    point tracker and interferometer; geometric errors ten times the default, a tracker
+    frame turned 178° about z, a target 370 mm off the centre; gross errors; the bundled
+    example. Moves that repeat (a swing's, an x-line's equal steps) agree at every shift,
+    so a shifted file of them cannot be told and is not refused."""
+    from jaxtable._calibration.measurements import check_alignment
+
+    frame = (1500.0, -300.0, 200.0, np.deg2rad(1.0), np.deg2rad(2.0), np.deg2rad(178.0))
+    far = (300.0, -200.0, 80.0, 0.0, 0.0, 0.0)
+    plans = {
+        "random": jt.plan_random(80, 3),
+        "grid": jt.plan_grid(3),
+        "swing": jt.plan_swing(),
+        "x-line": jt.plan_x_line(),
+    }
+    instruments = (jt.tracker6(), jt.point_tracker(), jt.interferometer())
+    for seed in range(3):
+        true = jt.perturb_table(table, seed, joint_sigma=0.1, zero_sigma=0.5)
+        for k, (name, plan) in enumerate(plans.items()):
+            for inst in instruments:
+                data = jt.simulate(table, true, plan, inst, frame=frame, target=far,
+                                   seed=10 * seed + k)  # fmt: skip
+                check_alignment(data)
+    check_alignment(_with_gross_errors(sessions[1])[0])
+    check_alignment(
+        jt.load_measurements(Path(jt.__path__[0]) / "data" / "example_measurements.csv")
+    )
+    for data in (jt.simulate(table, table, jt.plan_x_line(), jt.tracker6(), seed=1),
+                 jt.simulate(table, table, jt.plan_swing(), jt.tracker6(), seed=1)):  # fmt: skip
+        check_alignment(_shifted(data, 1))
 
 
 # --- gross errors ------------------------------------------------------------------------------

@@ -36,7 +36,7 @@ from .._rotation import euler_from_matrix, wrap_reading_difference
 from .._table import Table, replace
 from .._threads import one_blas_thread
 from .instruments import observe
-from .measurements import Measurements, check_units
+from .measurements import Measurements, check_alignment, check_units
 from .noise import NoiseEstimate, NoiseModel, group_scales, noise_model
 from .noise import estimate as noise_estimate
 from .outliers import ALPHA, GrossError, without
@@ -758,6 +758,7 @@ def setup(
     if not np.isfinite(data.measured).any():
         raise ValueError("no measured values in the data")
     check_units(data)
+    check_alignment(data)
     mask = np.isfinite(data.measured)
     col_mask = mask.any(0)
     motion = np.ptp(data.cmd_pose[:, :3], axis=0)

@@ -244,11 +244,33 @@ def _turn_angles(a, b):
     return jax.vmap(one)(a, b)
 
 
+def _moves(data: Measurements) -> dict:
+    """Motion between consecutive stops (N − 1 moves), which no instrument frame or target
+    changes: {"angles": (measured, commanded, ok), "positions": (...)}, the angle of the
+    rotation between the two attitudes (rad) and the distance between the two positions
+    (mm); `ok` where both stops are in one session and the kind's three columns are
+    measured at both."""
+    same = data.session[1:] == data.session[:-1]
+    m, c = data.measured, data.cmd_pose
+    out = {}
+    for kind, sl in (("angles", slice(3, 6)), ("positions", slice(0, 3))):
+        ok = same & np.isfinite(m[1:, sl]).all(1) & np.isfinite(m[:-1, sl]).all(1)
+        if kind == "angles":
+            a, b = np.where(ok[:, None], m[:-1, sl], 0.0), np.where(ok[:, None], m[1:, sl], 0.0)
+            d_meas = np.asarray(_turn_angles(a, b))
+            d_cmd = np.asarray(_turn_angles(c[:-1, sl], c[1:, sl]))
+        else:
+            d_meas = np.linalg.norm(m[1:, sl] - m[:-1, sl], axis=1)
+            d_cmd = np.linalg.norm(c[1:, sl] - c[:-1, sl], axis=1)
+        out[kind] = (np.where(ok, d_meas, np.nan), d_cmd, ok)
+    return out
+
+
 def check_units(data: Measurements) -> None:
     """Refuse data whose measured columns move by a different order of magnitude than the
     commands: positions in metres or micrometres, angles in radians, where the file's units
     are mm and degrees (in the measured or the commanded columns). Compared between
-    consecutive stops of a session, so the instrument's frame drops out:
+    consecutive stops of a session, so the instrument's frame drops out (`_moves`):
 
     - angles (roll, pitch, yaw all measured): the angle of the rotation between two measured
       attitudes against the commanded one (turns over 0.1°; equal but for noise, whatever
@@ -259,25 +281,17 @@ def check_units(data: Measurements) -> None:
       within 100× of 1 (metres and micrometres are 1000× off).
 
     Raises DataFileError naming the columns and the ratio."""
-    same = data.session[1:] == data.session[:-1]
-    m, c = data.measured, data.cmd_pose
-    checks = (  # kind, columns, slice, least commanded move, allowed ratio, units, suspects
-        ("angles", "roll, pitch, yaw", slice(3, 6), np.deg2rad(0.1), 20.0, "degrees",
+    moves = _moves(data)
+    checks = (  # kind, columns, least commanded move, allowed ratio, units, suspects
+        ("angles", "roll, pitch, yaw", np.deg2rad(0.1), 20.0, "degrees",
          "radians (1/57.3 if the measured ones are, 57.3 if the commanded ones are)"),
-        ("positions", "x, y, z", slice(0, 3), 10.0, 100.0, "mm",
+        ("positions", "x, y, z", 10.0, 100.0, "mm",
          "metres or micrometres (1/1000 or 1000 if the measured ones are)"),
     )  # fmt: skip
-    for kind, cols, sl, least, allowed, unit, suspects in checks:
-        ok = same & np.isfinite(m[1:, sl]).all(1) & np.isfinite(m[:-1, sl]).all(1)
+    for kind, cols, least, allowed, unit, suspects in checks:
+        d_meas, d_cmd, ok = moves[kind]
         if ok.sum() < 5:
             continue
-        if kind == "angles":
-            a, b = np.where(ok[:, None], m[:-1, sl], 0.0), np.where(ok[:, None], m[1:, sl], 0.0)
-            d_meas = np.asarray(_turn_angles(a, b))
-            d_cmd = np.asarray(_turn_angles(c[:-1, sl], c[1:, sl]))
-        else:
-            d_meas = np.linalg.norm(m[1:, sl] - m[:-1, sl], axis=1)
-            d_cmd = np.linalg.norm(c[1:, sl] - c[:-1, sl], axis=1)
         use = ok & (d_cmd > least)
         if use.sum() < 5:
             continue
@@ -287,6 +301,107 @@ def check_units(data: Measurements) -> None:
                 f"the measured {kind} ({cols}) move {ratio:.3g} times as far as the "
                 f"commanded ones (median over {int(use.sum())} moves between consecutive "
                 f"stops): the file's unit is {unit}; are some in {suspects}?"
+            )
+
+
+SHIFTS = (1, -1, 2, -2, 3, -3)  # row shifts `check_alignment` tries
+
+
+def check_alignment(data: Measurements) -> None:
+    """Refuse data whose measured rows do not belong to their commanded rows: a log that
+    writes each reading one stop late or early, or a row lost from one of two logs that
+    were joined line by line (every row after it shifted). The moves between consecutive
+    stops (`_moves`: turn angles, and distances where the commands do not turn, so that a
+    target off the platform's centre moves as the centre does) are compared with the
+    commanded moves at the same rows and at rows shifted by 1, 2 or 3.
+
+    A move agrees with a commanded one within 0.05° + 5 % (turns) or 0.1 mm + 1 %
+    (distances): a table's geometric errors change a turn by arc-seconds to a few
+    arc-minutes, and noise by less. Moves of under 0.2° (1 mm) on both sides carry no
+    information and are not counted. Per session, when at least 8 moves count and fewer
+    than 90 % agree as the file stands, the rows are refused if, from some row on (the
+    session's first, or later: a lost row), at least 90 % of the session's moves agree
+    with the rows before at no shift and the rows after at one shift, and under 30 % of
+    those after agree unshifted. Data whose moves repeat (a swing between two attitudes,
+    equal steps along a line) agree at every shift and are never refused.
+
+    Raises DataFileError naming the session, the row and the shift."""
+    moves = _moves(data)
+    cmd_turn = moves["angles"][1]
+    session = np.asarray(data.session)
+    same = session[1:] == session[:-1]
+    n = len(cmd_turn)
+    if n < 8:
+        return
+    idx = np.arange(n)
+    kinds = (  # kind, what moves, least move, tolerance (absolute, relative)
+        ("angles", "attitudes turn", np.deg2rad(0.2), (np.deg2rad(0.05), 0.05)),
+        ("positions", "positions move", 1.0, (0.1, 0.01)),
+    )
+    for kind, words, least, (tol_abs, tol_rel) in kinds:
+        d_meas, d_cmd, ok = moves[kind]
+
+        def agree(shift):
+            """(counted, agreeing) (n,) for measured move i against commanded move i +
+            shift (same session, both moves within it)."""
+            j = idx + shift
+            inside = (j >= 0) & (j < n)
+            jj = np.clip(j, 0, n - 1)
+            valid = ok & inside & same[jj] & (session[1:][jj] == session[1:])
+            if kind == "positions":  # the commands turn in neither move
+                valid &= (cmd_turn < np.deg2rad(0.01)) & (cmd_turn[jj] < np.deg2rad(0.01))
+            c = d_cmd[jj]
+            counted = valid & ((np.nan_to_num(d_meas) > least) | (c > least))
+            good = counted & (np.abs(d_meas - c) <= tol_abs + tol_rel * c)
+            return counted, good
+
+        counted0, good0 = agree(0)
+        for label in dict.fromkeys(session.tolist()):
+            rows = np.flatnonzero(session == label)
+            in_s = np.zeros(n, bool)
+            in_s[rows[:-1]] = True  # moves that start in the session
+            c0, g0 = counted0 & in_s, good0 & in_s
+            if c0.sum() < 8 or g0.sum() >= 0.9 * c0.sum():
+                continue
+            best = None
+            for shift in SHIFTS:
+                c1, g1 = (x & in_s for x in agree(shift))
+                # from move b on at the shift: cumulative counts before b unshifted
+                before_c = np.concatenate([[0], np.cumsum(c0)])[:-1]
+                before_g = np.concatenate([[0], np.cumsum(g0)])[:-1]
+                after_c = np.cumsum(c1[::-1])[::-1]
+                after_g = np.cumsum(g1[::-1])[::-1]
+                after_g0 = np.cumsum(g0[::-1])[::-1]
+                after_c0 = np.cumsum(c0[::-1])[::-1]
+                total = before_c + after_c
+                frac = (before_g + after_g) / np.maximum(total, 1)
+                real = (
+                    in_s
+                    & (after_c >= 5)
+                    & (after_g0 < 0.3 * np.maximum(after_c0, 1))
+                    & (total >= 8)
+                    & (frac >= 0.9)
+                )
+                if real.any():
+                    b = int(np.argmax(np.where(real, frac, -1.0)))
+                    if best is None or frac[b] > best[0]:
+                        whole = before_c[b] == 0
+                        best = (frac[b], shift, b, int(after_g[b]), int(after_c[b]), whole)
+            if best is None:
+                continue
+            _, shift, b, k, m, whole = best
+            later = "later" if shift > 0 else "earlier"
+            # move b joins rows b and b + 1 (0-based); the first of them may still be right
+            where = (
+                f"session {label!r}" if whole else f"from about row {b + 2} on (session {label!r})"
+            )
+            raise DataFileError(
+                f"{where}: the measured {words} between consecutive stops as the "
+                f"commanded ones {abs(shift)} row(s) {later} do ({k} of {m} moves agree "
+                f"at that shift; {int(g0.sum())} of {int(c0.sum())} in the session as the "
+                f"file stands): measured row r belongs to commanded row r{shift:+d}; a "
+                "reading logged a stop late or early, or a row lost from one of two joined "
+                "logs? Align the rows and run again"
             )
 
 

@@ -39,7 +39,7 @@ from .fit import (
 )
 from .fit import validate as column_rms
 from .instruments import observe
-from .measurements import Measurements, check_units
+from .measurements import Measurements, check_alignment, check_units
 from .model_file import FittedModel, load_fitted_model
 
 
@@ -139,6 +139,7 @@ def validate_model(
     if register is not None and register < 1:
         raise ValueError(f"--register must be a positive number of rows; got {register}")
     check_units(data)
+    check_alignment(data)
     table = model.table
     effects = resolve_effects(table, model.effects)
     if data.cmd_lengths is None and nominal is None:
