@@ -283,6 +283,11 @@ def _shifted(data, rows):
     return dataclasses.replace(data, measured=m)
 
 
+def _shifted_rows(x, rows):
+    """(N, k) array `x` moved down `rows` rows, its first rows repeating the first."""
+    return np.concatenate([np.repeat(x[:1], rows, axis=0), x[:-rows]])
+
+
 def _row_lost(data, row):
     """`data` as two logs joined line by line when the measurement log lost 0-based `row`:
     every measured row from there on belongs to the next commanded row."""
@@ -318,6 +323,14 @@ def test_measured_rows_shifted_against_the_commands_are_refused(table, sessions,
     )
     with pytest.raises(jt.DataFileError, match=r"session 'B'.* 1 row\(s\) earlier"):
         check_alignment(late_b)
+    # the commanded lengths a stop late against the commanded poses (and the readings):
+    # the fit uses the lengths, so the poses no longer label the rows it fits
+    late_l = dataclasses.replace(a, cmd_lengths=_shifted_rows(a.cmd_lengths, 1))
+    check_alignment(late_l)  # the poses alone: the readings agree with them
+    with pytest.raises(jt.DataFileError, match=r"session 'A'.*commanded lengths \(cmd_l\)"):
+        check_alignment(late_l, table)
+    with pytest.raises(jt.DataFileError, match=r"cmd_l row r belongs to commanded pose row r-1"):
+        jt.calibrate(table, late_l)
     bad = cases["row 41 lost"][0]
     with pytest.raises(jt.DataFileError, match="row lost from one of two joined logs"):
         jt.calibrate(table, bad)
@@ -340,10 +353,12 @@ def _joined(a, b, tmp_path):
 
 def test_aligned_data_are_not_refused_whatever_the_plan_instrument_or_errors(table, sessions):
     """No refusal of rows in order: random, grid, swing and x-line plans; 6-D tracker,
-    point tracker and interferometer; geometric errors ten times the default, a tracker
-    frame turned 178° about z, a target 370 mm off the centre; gross errors; the bundled
-    example. Moves that repeat (a swing's, an x-line's equal steps) agree at every shift,
-    so a shifted file of them cannot be told and is not refused."""
+    point tracker and interferometer; geometric errors ten times the default; controllers
+    that compensate the spiral term and one that does not (the commanded lengths against
+    the nominal inverse kinematics); a tracker frame turned 178° about z; a target 370 mm
+    off the centre; gross errors; the bundled example. Moves that repeat (a swing's, an
+    x-line's equal steps) agree at every shift, so a shifted file of them cannot be told
+    and is not refused."""
     from jaxtable._calibration.measurements import check_alignment
 
     frame = (1500.0, -300.0, 200.0, np.deg2rad(1.0), np.deg2rad(2.0), np.deg2rad(178.0))
@@ -360,15 +375,15 @@ def test_aligned_data_are_not_refused_whatever_the_plan_instrument_or_errors(tab
         for k, (name, plan) in enumerate(plans.items()):
             for inst in instruments:
                 data = jt.simulate(table, true, plan, inst, frame=frame, target=far,
-                                   seed=10 * seed + k)  # fmt: skip
-                check_alignment(data)
-    check_alignment(_with_gross_errors(sessions[1])[0])
+                                   compensated=seed != 1, seed=10 * seed + k)  # fmt: skip
+                check_alignment(data, table)
+    check_alignment(_with_gross_errors(sessions[1])[0], table)
     check_alignment(
         jt.load_measurements(Path(jt.__path__[0]) / "data" / "example_measurements.csv")
     )
     for data in (jt.simulate(table, table, jt.plan_x_line(), jt.tracker6(), seed=1),
                  jt.simulate(table, table, jt.plan_swing(), jt.tracker6(), seed=1)):  # fmt: skip
-        check_alignment(_shifted(data, 1))
+        check_alignment(_shifted(data, 1), table)
 
 
 # --- gross errors ------------------------------------------------------------------------------

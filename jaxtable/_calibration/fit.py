@@ -758,7 +758,7 @@ def setup(
     if not np.isfinite(data.measured).any():
         raise ValueError("no measured values in the data")
     check_units(data)
-    check_alignment(data)
+    check_alignment(data, nominal)
     mask = np.isfinite(data.measured)
     col_mask = mask.any(0)
     motion = np.ptp(data.cmd_pose[:, :3], axis=0)

@@ -307,102 +307,131 @@ def check_units(data: Measurements) -> None:
 SHIFTS = (1, -1, 2, -2, 3, -3)  # row shifts `check_alignment` tries
 
 
-def check_alignment(data: Measurements) -> None:
+def check_alignment(data: Measurements, nominal=None) -> None:
     """Refuse data whose measured rows do not belong to their commanded rows: a log that
     writes each reading one stop late or early, or a row lost from one of two logs that
     were joined line by line (every row after it shifted). The moves between consecutive
     stops (`_moves`: turn angles, and distances where the commands do not turn, so that a
     target off the platform's centre moves as the centre does) are compared with the
-    commanded moves at the same rows and at rows shifted by 1, 2 or 3.
+    commanded moves at the same rows and at rows shifted by 1, 2 or 3. With a `nominal`
+    table, the commanded lengths (cmd_l columns, which the fit uses) are compared in the
+    same way with the table's inverse kinematics of the commanded poses (which label the
+    rows and start the forward solve), compensated or not.
 
-    A move agrees with a commanded one within 0.05° + 5 % (turns) or 0.1 mm + 1 %
-    (distances): a table's geometric errors change a turn by arc-seconds to a few
-    arc-minutes, and noise by less. Moves of under 0.2° (1 mm) on both sides carry no
-    information and are not counted. Per session, when at least 8 moves count and fewer
-    than 90 % agree as the file stands, the rows are refused if, from some row on (the
-    session's first, or later: a lost row), at least 90 % of the session's moves agree
-    with the rows before at no shift and the rows after at one shift, and under 30 % of
-    those after agree unshifted. Data whose moves repeat (a swing between two attitudes,
-    equal steps along a line) agree at every shift and are never refused.
+    A move agrees with a commanded one within 0.05° + 5 % (turns), 0.1 mm + 1 %
+    (distances; the largest leg's change for lengths): a table's geometric errors change a
+    turn by arc-seconds to a few arc-minutes, and noise by less. Moves of under 0.2°
+    (1 mm) on both sides carry no information and are not counted. Per session, when at
+    least 8 moves count and fewer than 90 % agree as the file stands, the rows are refused
+    if, from some row on (the session's first, or later: a lost row), at least 90 % of the
+    session's moves agree with the rows before at no shift and the rows after at one
+    shift, and under 30 % of those after agree unshifted. Data whose moves repeat (a swing
+    between two attitudes, equal steps along a line) agree at every shift and are never
+    refused.
 
     Raises DataFileError naming the session, the row and the shift."""
-    moves = _moves(data)
-    cmd_turn = moves["angles"][1]
     session = np.asarray(data.session)
-    same = session[1:] == session[:-1]
-    n = len(cmd_turn)
+    n = len(session) - 1
     if n < 8:
         return
+    same = session[1:] == session[:-1]
     idx = np.arange(n)
-    kinds = (  # kind, what moves, least move, tolerance (absolute, relative)
-        ("angles", "attitudes turn", np.deg2rad(0.2), (np.deg2rad(0.05), 0.05)),
-        ("positions", "positions move", 1.0, (0.1, 0.01)),
-    )
-    for kind, words, least, (tol_abs, tol_rel) in kinds:
+    moves = _moves(data)
+    cmd_turn = moves["angles"][1]
+    pairs = []  # (what moves, names, least move, tolerance, moves, commanded moves, ok)
+    for kind, words, least, tol in (
+        ("angles", "measured attitudes turn", np.deg2rad(0.2), (np.deg2rad(0.05), 0.05)),
+        ("positions", "measured positions move", 1.0, (0.1, 0.01)),
+    ):
         d_meas, d_cmd, ok = moves[kind]
+        if kind == "positions":  # compared where the commands turn in neither move
+            ok = ok & (cmd_turn < np.deg2rad(0.01))
+        names = ("measured", "the commanded ones", "commanded")
+        pairs.append((words, names, least, tol, d_meas, (d_cmd,), ok))
+    if nominal is not None and data.cmd_lengths is not None:
+        from .._api import actuator_command
+
+        steps = []
+        for compensated in (True, False):
+            ik = np.asarray(actuator_command(nominal, data.cmd_pose, compensated, check=False))
+            steps.append(np.diff(ik, axis=0))
+        dl = np.diff(np.asarray(data.cmd_lengths, float), axis=0)
+        words = "commanded lengths (cmd_l) change"
+        names = ("cmd_l", "the inverse kinematics of the commanded poses", "commanded pose")
+        pairs.append((words, names, 1.0, (0.1, 0.01), dl, steps, same))
+    for words, (mine, theirs, their_row), least, (tol_abs, tol_rel), d_meas, d_cmds, ok in pairs:
 
         def agree(shift):
-            """(counted, agreeing) (n,) for measured move i against commanded move i +
-            shift (same session, both moves within it)."""
+            """(counted, agreeing) (n,) for move i against commanded move i + shift (same
+            session, both moves within it)."""
             j = idx + shift
-            inside = (j >= 0) & (j < n)
             jj = np.clip(j, 0, n - 1)
-            valid = ok & inside & same[jj] & (session[1:][jj] == session[1:])
-            if kind == "positions":  # the commands turn in neither move
-                valid &= (cmd_turn < np.deg2rad(0.01)) & (cmd_turn[jj] < np.deg2rad(0.01))
-            c = d_cmd[jj]
-            counted = valid & ((np.nan_to_num(d_meas) > least) | (c > least))
-            good = counted & (np.abs(d_meas - c) <= tol_abs + tol_rel * c)
+            valid = ok & ok[jj] & (j >= 0) & (j < n) & (session[1:][jj] == session[1:])
+            counted = np.zeros(n, bool)
+            good = np.zeros(n, bool)
+            for d_cmd in d_cmds:  # agreeing with any of them (compensated or not)
+                size = lambda d: np.abs(d) if d.ndim == 1 else np.abs(d).max(1)  # noqa: E731
+                c = size(d_cmd[jj])
+                counted |= valid & ((np.nan_to_num(size(d_meas)) > least) | (c > least))
+                good |= counted & (size(d_meas - d_cmd[jj]) <= tol_abs + tol_rel * c)
             return counted, good
 
         counted0, good0 = agree(0)
+        shifted = {k: agree(k) for k in SHIFTS}
         for label in dict.fromkeys(session.tolist()):
-            rows = np.flatnonzero(session == label)
             in_s = np.zeros(n, bool)
-            in_s[rows[:-1]] = True  # moves that start in the session
+            in_s[np.flatnonzero(session == label)[:-1]] = True  # moves starting in it
             c0, g0 = counted0 & in_s, good0 & in_s
             if c0.sum() < 8 or g0.sum() >= 0.9 * c0.sum():
                 continue
-            best = None
-            for shift in SHIFTS:
-                c1, g1 = (x & in_s for x in agree(shift))
-                # from move b on at the shift: cumulative counts before b unshifted
-                before_c = np.concatenate([[0], np.cumsum(c0)])[:-1]
-                before_g = np.concatenate([[0], np.cumsum(g0)])[:-1]
-                after_c = np.cumsum(c1[::-1])[::-1]
-                after_g = np.cumsum(g1[::-1])[::-1]
-                after_g0 = np.cumsum(g0[::-1])[::-1]
-                after_c0 = np.cumsum(c0[::-1])[::-1]
-                total = before_c + after_c
-                frac = (before_g + after_g) / np.maximum(total, 1)
-                real = (
-                    in_s
-                    & (after_c >= 5)
-                    & (after_g0 < 0.3 * np.maximum(after_c0, 1))
-                    & (total >= 8)
-                    & (frac >= 0.9)
-                )
-                if real.any():
-                    b = int(np.argmax(np.where(real, frac, -1.0)))
-                    if best is None or frac[b] > best[0]:
-                        whole = before_c[b] == 0
-                        best = (frac[b], shift, b, int(after_g[b]), int(after_c[b]), whole)
+            best = _best_shift(c0, g0, {k: (c & in_s, g & in_s) for k, (c, g) in shifted.items()})
             if best is None:
                 continue
-            _, shift, b, k, m, whole = best
+            shift, b, k, m, whole = best
             later = "later" if shift > 0 else "earlier"
             # move b joins rows b and b + 1 (0-based); the first of them may still be right
             where = (
                 f"session {label!r}" if whole else f"from about row {b + 2} on (session {label!r})"
             )
             raise DataFileError(
-                f"{where}: the measured {words} between consecutive stops as the "
-                f"commanded ones {abs(shift)} row(s) {later} do ({k} of {m} moves agree "
-                f"at that shift; {int(g0.sum())} of {int(c0.sum())} in the session as the "
-                f"file stands): measured row r belongs to commanded row r{shift:+d}; a "
-                "reading logged a stop late or early, or a row lost from one of two joined "
-                "logs? Align the rows and run again"
+                f"{where}: the {words} between consecutive stops as {theirs} "
+                f"{abs(shift)} row(s) {later} do ({k} of {m} moves agree at that shift; "
+                f"{int(g0.sum())} of {int(c0.sum())} in the session as the file stands): "
+                f"{mine} row r belongs to {their_row} row r{shift:+d}; a value logged a stop "
+                "late or early, or a row lost from one of two joined logs? Align the rows "
+                "and run again"
             )
+
+
+def _best_shift(c0, g0, shifted: dict):
+    """The shift and first move b (0-based) that best explain a session's moves: counted
+    `c0` and agreeing `g0` (n,) as the file stands, {shift: (counted, agreeing)} shifted;
+    the moves before b taken as they stand, those from b on shifted. Returns (shift, b,
+    agreeing from b, counted from b, b is the session's first counted move) for the best
+    fraction at least 0.9 with at least 5 moves from b, under 30 % of which agree as they
+    stand, or None."""
+
+    def before(x):
+        return np.concatenate([[0], np.cumsum(x)])[:-1]
+
+    def after(x):
+        return np.cumsum(x[::-1])[::-1]
+
+    best = None
+    for shift, (c1, g1) in shifted.items():
+        total = before(c0) + after(c1)
+        frac = (before(g0) + after(g1)) / np.maximum(total, 1)
+        real = (
+            (after(c1) >= 5)
+            & (after(g0) < 0.3 * np.maximum(after(c0), 1))
+            & (total >= 8)
+            & (frac >= 0.9)
+        )
+        if real.any():
+            b = int(np.argmax(np.where(real, frac, -1.0)))
+            if best is None or frac[b] > best[0]:
+                best = (frac[b], shift, b, int(after(g1)[b]), int(after(c1)[b]), before(c0)[b] == 0)
+    return None if best is None else best[1:]
 
 
 def save_measurements(m: Measurements, path) -> None:

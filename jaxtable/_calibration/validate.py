@@ -139,8 +139,8 @@ def validate_model(
     if register is not None and register < 1:
         raise ValueError(f"--register must be a positive number of rows; got {register}")
     check_units(data)
-    check_alignment(data)
     table = model.table
+    check_alignment(data, table)
     effects = resolve_effects(table, model.effects)
     if data.cmd_lengths is None and nominal is None:
         raise ValueError(
