@@ -259,17 +259,27 @@ def test_measured_columns_in_other_units_are_refused_by_how_far_they_move(
         bad = dataclasses.replace(a, **{field: getattr(a, field) * f})
         with pytest.raises(jt.DataFileError, match=pattern):
             check_units(bad)
-        if name == "metres":  # each verb refuses before it fits, and writes nothing
-            with pytest.raises(jt.DataFileError, match="are some in metres or micrometres"):
-                jt.calibrate(table, bad)
-            with pytest.raises(jt.DataFileError, match="measured positions"):
-                jt.diagnose(table, bad)
-            with pytest.raises(jt.DataFileError, match="measured positions"):
-                jt.validate(jt.fitted_model(cal, table, a.sessions), bad)
-            path = tmp_path / "m.csv"
-            jt.save_measurements(bad, path)
-            assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 2
-            assert not (tmp_path / "out").exists()
+        if name == "metres":
+            pattern = "measured positions .* are some in metres or micrometres"
+            _refused_by_every_verb(
+                table, jt.fitted_model(cal, table, a.sessions), bad, pattern, tmp_path, "calibrate"
+            )
+
+
+def _refused_by_every_verb(table, model, bad, pattern, tmp_path, verb):
+    """calibrate, diagnose and validate (with the fitted `model`) raise DataFileError matching
+    `pattern` on `bad` before they fit; the command line's `verb` exits with 2 and writes
+    nothing."""
+    with pytest.raises(jt.DataFileError, match=pattern):
+        jt.calibrate(table, bad)
+    with pytest.raises(jt.DataFileError, match=pattern):
+        jt.diagnose(table, bad)
+    with pytest.raises(jt.DataFileError, match=pattern):
+        jt.validate(model, bad)
+    path = tmp_path / "bad.csv"
+    jt.save_measurements(bad, path)
+    assert main([verb, str(path), "--out", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out").exists()
 
 
 def _shifted(data, rows):
@@ -331,15 +341,9 @@ def test_measured_rows_shifted_against_the_commands_are_refused(table, sessions,
         check_alignment(late_l, table)
     with pytest.raises(jt.DataFileError, match=r"cmd_l row r belongs to commanded pose row r-1"):
         jt.calibrate(table, late_l)
-    bad = cases["row 41 lost"][0]
-    with pytest.raises(jt.DataFileError, match="row lost from one of two joined logs"):
-        jt.calibrate(table, bad)
-    with pytest.raises(jt.DataFileError, match="from about row"):
-        jt.validate(jt.fitted_model(cal, table, a.sessions), bad)
-    path = tmp_path / "shifted.csv"
-    jt.save_measurements(bad, path)
-    assert main(["diagnose", str(path), "--out", str(tmp_path / "out")]) == 2
-    assert not (tmp_path / "out").exists()
+    pattern = "from about row 4[12] on .* row lost from one of two joined logs"
+    model = jt.fitted_model(cal, table, a.sessions)
+    _refused_by_every_verb(table, model, cases["row 41 lost"][0], pattern, tmp_path, "diagnose")
 
 
 def _joined(a, b, tmp_path):
