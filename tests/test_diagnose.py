@@ -251,6 +251,28 @@ def test_effects_found_without_sigma_columns():
     assert diag.as_json()["residual_model"]["hints"] == gp.hints()
 
 
+def test_blank_context_cells_leave_out_the_candidates_that_read_them():
+    """A temperature logger that missed three stops and a payload cell lost: the effects
+    that read those columns (thermal, compliance) cannot be fitted on every row, so they
+    are not tried (the report says why and which rows), and the rest of the diagnosis is
+    made on every row: the hidden spiral term is found. A starting model that reads the
+    column refuses the blank rows, naming them."""
+    nominal, data, _ = case("spiral", 3)
+    temperature, payload = data.temperature.copy(), data.payload.copy()
+    temperature[[3, 50, 90]] = np.nan
+    payload[7] = np.nan
+    gappy = dataclasses.replace(data, temperature=temperature, payload=payload)
+    diag = diagnose(nominal, gappy, log=_quiet, discover=False, flexible=False)
+    assert diag.selected[0] == "spiral" and not diag.unexplained, diag.selected
+    why = diag.not_applicable
+    assert why["thermal"].startswith("temperature blank in 3 row(s) (4, 51, 91)"), why
+    assert why["compliance"].startswith("payload blank in 1 row(s) (8)"), why
+    assert "thermal" not in {c.effect.split("[")[0] for c in diag.candidates}
+    assert diag.rms_after < 1.3 and diag.heldout_rms_after < 1.3  # every row fitted
+    with pytest.raises(ValueError, match=r"row 4, column 'temperature'.*thermal"):
+        diagnose(nominal, gappy, base=("thermal",), log=_quiet, discover=False, flexible=False)
+
+
 @pytest.mark.slow
 def test_misstated_sigma_false_alarms_over_60_data_sets():
     """Noise-only data with σ stated 25 % too small, 25 % too large and not at all (20 seeds

@@ -37,6 +37,7 @@ effects sit in the model at their null values and the free set and the fitted ro
 traced masks.
 """
 
+import dataclasses
 import inspect
 import math
 import sys
@@ -89,6 +90,30 @@ def applicable(name: str, nominal: Table, data: Measurements) -> tuple[bool, str
     if name == "periodic_lead" and not np.any(np.asarray(nominal.lead) > 0):
         return False, "the table has no screw lead (period unknown)"
     return True, ""
+
+
+def _without_blank_context(data: Measurements, base) -> tuple[Measurements, dict]:
+    """`data` without its temperature or payload column where that column has blank cells
+    and no effect of the starting model `base` reads it, and {need: why} for the
+    candidates that would (thermal, the dictionary's T*s; compliance): a candidate cannot
+    be fitted on every row, and a filled-in value would be a guess. Where a `base` effect
+    reads the column, `data` is returned as it is (the fit then refuses the blank rows,
+    naming them)."""
+    used = {n for name in base for n in EFFECTS[name].needs}
+    blank = {}
+    for need, column in (("temperature", "temperature"), ("mass", "payload")):
+        values = getattr(data, column)
+        if values is None or need in used:
+            continue
+        rows = np.flatnonzero(~np.isfinite(np.asarray(values, float))) + 1
+        if len(rows):
+            shown = ", ".join(str(r) for r in rows[:10]) + (", ..." if len(rows) > 10 else "")
+            blank[need] = (
+                f"{column} blank in {len(rows)} row(s) ({shown}): fill them or drop those "
+                "rows to test it"
+            )
+            data = dataclasses.replace(data, **{column: None})
+    return data, blank
 
 
 @dataclass
@@ -520,6 +545,7 @@ def diagnose(
     for name in list(base) + library:
         if name not in EFFECTS:
             raise ValueError(f"unknown effect '{name}'; known: {', '.join(EFFECTS)}")
+    data, blank = _without_blank_context(data, base)
     st = discovery_setup(nominal, data, compensated=compensated, sigma=sigma)
     mask = st.mask
     all_rows = np.arange(len(data))
@@ -528,6 +554,9 @@ def diagnose(
     not_applicable = {}
     for name in library:
         ok, why = applicable(name, nominal, data)
+        gap = [blank[n] for n in EFFECTS[name].needs if n in blank]
+        if gap:  # a column it reads has blank cells (`_without_blank_context`)
+            ok, why = False, gap[0]
         if not ok:
             not_applicable[name] = why
     # every form of every applicable effect: spiral, thermal and compliance also with one
