@@ -370,10 +370,9 @@ def check_alignment(data: Measurements, nominal=None) -> None:
             counted = np.zeros(n, bool)
             good = np.zeros(n, bool)
             for d_cmd in d_cmds:  # agreeing with any of them (compensated or not)
-                size = lambda d: np.abs(d) if d.ndim == 1 else np.abs(d).max(1)  # noqa: E731
-                c = size(d_cmd[jj])
-                counted |= valid & ((np.nan_to_num(size(d_meas)) > least) | (c > least))
-                good |= counted & (size(d_meas - d_cmd[jj]) <= tol_abs + tol_rel * c)
+                c = _size(d_cmd[jj])
+                counted |= valid & ((np.nan_to_num(_size(d_meas)) > least) | (c > least))
+                good |= counted & (_size(d_meas - d_cmd[jj]) <= tol_abs + tol_rel * c)
             return counted, good
 
         counted0, good0 = agree(0)
@@ -401,6 +400,12 @@ def check_alignment(data: Measurements, nominal=None) -> None:
                 "late or early, or a row lost from one of two joined logs? Align the rows "
                 "and run again"
             )
+
+
+def _size(d):
+    """Size of each move: |d| for (n,) turns or distances, the largest leg's |change| for
+    (n, 6) lengths."""
+    return np.abs(d) if d.ndim == 1 else np.abs(d).max(1)
 
 
 def _best_shift(c0, g0, shifted: dict):
