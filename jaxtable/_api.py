@@ -88,8 +88,7 @@ def _reach_one(table, pose):
 
 def reachable(table: Table, poses, *, chunk: int = 1 << 16):
     """Boolean (...,): every leg inside the stroke and every U-joint bend within the limit."""
-    L, bend = per_pose(_reach_one, table, poses, chunk)
-    return jnp.all(kin.in_stroke(table, L) & (bend <= table.joint_angle_limit), axis=-1)
+    return per_pose(kin.within_limits, table, poses, chunk)
 
 
 def check_reachable(table: Table, poses, *, chunk: int = 1 << 16) -> None:

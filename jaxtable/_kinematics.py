@@ -186,8 +186,10 @@ def _angle(a: Vec3, b: Vec3) -> Array:
     return jnp.arctan2(jnp.sqrt(_dot(c, c)), _dot(a, b))
 
 
-def _lengths_and_bends(table: Table, pose: Float[ArrayLike, "6"]):
-    """(|l_i|, base bend, platform bend), (6,) each: see `joint_bend`."""
+def _legs_from_home(table: Table, pose: Float[ArrayLike, "6"]):
+    """(|l_i|, u_i, Rᵀu_i, u_i(0)): leg lengths (6,) mm and unit leg directions, each a
+    tuple of three (6,) components: in the base frame now, in the platform frame now, and
+    at home (the U-joints' neutral direction)."""
     R = rotation_entries(pose[3:])
     l = _legs(table, pose, R)
     L = jnp.sqrt(_dot(l, l))
@@ -196,6 +198,12 @@ def _lengths_and_bends(table: Table, pose: Float[ArrayLike, "6"]):
     L0 = jnp.sqrt(_dot(l0, l0))
     u0 = tuple(x / L0 for x in l0)
     up = tuple(R[0][k] * u[0] + R[1][k] * u[1] + R[2][k] * u[2] for k in range(3))  # Rᵀu
+    return L, u, up, u0
+
+
+def _lengths_and_bends(table: Table, pose: Float[ArrayLike, "6"]):
+    """(|l_i|, base bend, platform bend), (6,) each: see `joint_bend`."""
+    L, u, up, u0 = _legs_from_home(table, pose)
     return L, _angle(u, u0), _angle(up, u0)
 
 
@@ -212,6 +220,10 @@ def joint_bend(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "2
 def within_limits(table: Table, pose: Float[ArrayLike, "6"]) -> Array:
     """True when every leg length |l_i| is inside the stroke and every U-joint bend is within
     the table's joint angle limit (bool scalar)."""
-    L, base, platform = _lengths_and_bends(table, pose)
-    bend = jnp.maximum(base, platform)
-    return jnp.all(in_stroke(table, L) & (bend <= table.joint_angle_limit))
+    # bend ≤ limit compared as cosines, cos(bend) = u·u0 ≥ cos(limit) (no arctangent: the
+    # error map's kernel checks every pose)
+    L, u, up, u0 = _legs_from_home(table, pose)
+    limit = table.joint_angle_limit
+    c = jnp.cos(jnp.minimum(limit, jnp.pi))
+    bend_ok = (limit >= jnp.pi) | ((_dot(u, u0) >= c) & (_dot(up, u0) >= c))
+    return jnp.all(in_stroke(table, L) & bend_ok)

@@ -158,6 +158,46 @@ def test_reachable_and_joint_limits(table):
         jt.check_reachable(table, tilt)
 
 
+def test_reachable_against_numpy_geometry_near_the_joint_limit(table):
+    """`reachable` (bend compared as a cosine) against the bends computed here from the
+    joint positions with numpy (arccos of unit leg directions, base frame and platform frame,
+    from home): poses tilted up to 45° cross the 35° limit; a pose within 1e-9 rad of it
+    is not compared. With an infinite limit only the stroke decides."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(11)
+    poses = np.zeros((400, 6))
+    poses[:, :3] = rng.uniform(-60, 60, (400, 3))
+    poses[:, 3:] = rng.uniform(-1, 1, (400, 3)) * np.deg2rad([45, 45, 30])
+    a, b = np.asarray(table.platform_joints), np.asarray(table.base_joints)
+    home = np.array([0, 0, float(table.home_height)])
+
+    def legs(p):
+        R = Rotation.from_euler("ZYX", p[::-1][:3]).as_matrix()
+        return home + p[:3] + a @ R.T - b, R
+
+    l0, _ = legs(np.zeros(6))
+    u0 = l0 / np.linalg.norm(l0, axis=1, keepdims=True)
+    bend, length = [], []
+    for p in poses:
+        l, R = legs(p)
+        u = l / np.linalg.norm(l, axis=1, keepdims=True)
+        ang = lambda x: np.arccos(np.clip(np.sum(x * u0, axis=1), -1, 1))  # noqa: E731
+        bend.append(np.maximum(ang(u), ang(u @ R)))
+        length.append(np.linalg.norm(l, axis=1))
+    bend, length = np.array(bend), np.array(length)
+    lo, hi = np.asarray(table.stroke)
+    in_stroke = ((length >= lo) & (length <= hi)).all(1)
+    limit = float(table.joint_angle_limit)
+    expected = in_stroke & (bend <= limit).all(1)
+    clear = np.abs(bend - limit).min(1) > 1e-9
+    assert 50 < expected.sum() < 350 and (in_stroke & ~expected).sum() > 50  # both rules bite
+    got = np.asarray(jt.reachable(table, poses))
+    np.testing.assert_array_equal(got[clear], expected[clear])
+    free = jt.replace(table, joint_angle_limit=np.inf)
+    np.testing.assert_array_equal(np.asarray(jt.reachable(free, poses)), in_stroke)
+
+
 def test_forward_refuses_commands_outside_stroke(table):
     cmd = np.full((4, 6), 820.0)
     cmd[2, 5] = 1200.0

@@ -168,8 +168,8 @@ def error_map(
     cond: bool = True,
 ):
     """Propagate `tolerances` over every pose of `grid` in chunks of `chunk` poses.
-    `cond=False` skips the condition number (NaN in the map and the summary): four fifths
-    of the work per pose, and no part of the budget.
+    `cond=False` skips the condition number (NaN in the map and the summary): about half
+    the work per pose, and no part of the budget.
 
     Returns (ErrorMap or None when `keep=False`, summary dict). The summary streams over the
     reachable poses: for every source and the totals (compensated, uncompensated), the max
