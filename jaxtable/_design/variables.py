@@ -195,5 +195,15 @@ def check_design(design: Design) -> None:
 
 
 def stack(designs: list[Design]) -> Design:
-    """Designs stacked leaf by leaf (leading axis), for `jax.vmap` over designs."""
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *designs)
+    """Designs stacked leaf by leaf (leading axis), for `jax.vmap` over designs.
+
+    Stacked on the host (numpy) unless a leaf is traced: `jnp.stack` of n device scalars is
+    an n-operand concatenation that XLA compiles for every n and leaf shape (1681 designs:
+    22 s, against 0.4 s this way)."""
+
+    def leaf(*xs):
+        if any(isinstance(x, jax.core.Tracer) for x in xs):
+            return jnp.stack(xs)
+        return jnp.asarray(np.stack([np.asarray(x) for x in xs]))
+
+    return jax.tree.map(leaf, *designs)
