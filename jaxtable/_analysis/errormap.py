@@ -37,7 +37,7 @@ TARGET_MM = 0.2  # the paper's design target: translation error within ±0.2 mm
 def budget_one(table: Table, sigmas: tuple, pose, with_cond: bool = True):
     """Linear budget at one commanded pose; see the module docstring. `sigmas`: σ per source
     in model units, ordered as `SOURCES`. `with_cond=False`: cond is NaN (the 2-norm
-    condition number costs more than the rest of the budget)."""
+    condition number, `_linalg.cond_small`, costs about as much as the rest of the budget)."""
     # closed-form blocks (sensitivities.budget_jacobians_one): the lead-scale error is zero
     # at the nominal and adds nothing to the command, so the command is explicit
     _, K, gains, spiral = budget_jacobians_one(table, pose)
