@@ -134,20 +134,23 @@ def tridiagonal_small(S: Float[ArrayLike, "n n"]):
     n = S.shape[0]
     A = [[S[i, j] for j in range(i + 1)] for i in range(n)]  # A[i][j], j ≤ i
     a, b = [], []
-    for k in range(n - 2):  # reflection I − β v vᵀ on rows/columns k+1.., taking x to α e₁
+    for k in range(n - 2):  # reflection I − 2 v vᵀ on rows/columns k+1.., taking x to α e₁
         x = [A[i][k] for i in range(k + 1, n)]
         alpha = -jnp.where(x[0] >= 0, 1.0, -1.0) * jnp.sqrt(sum(xi * xi for xi in x))
         v = [x[0] - alpha] + x[1:]
-        vv = sum(vi * vi for vi in v)
-        beta = jnp.where(vv > 0, 2.0 / jnp.where(vv > 0, vv, 1.0), 0.0)
+        norm = jnp.sqrt(sum(vi * vi for vi in v))
+        # v of unit length (zero where x is): every product below stays of the size of the
+        # matrix (with v unnormalised and β = 2/|v|², a nearly diagonal matrix made products of
+        # 1e-17 and 1e33 that the compiled program got wrong)
+        v = [vi / jnp.where(norm > 0, norm, 1.0) for vi in v]
         m = len(v)
 
         def entry(i, j):  # trailing block, symmetric
             return A[k + 1 + max(i, j)][k + 1 + min(i, j)]
 
-        p = [beta * sum(entry(i, j) * v[j] for j in range(m)) for i in range(m)]
-        half_vp = 0.5 * beta * sum(vi * pi for vi, pi in zip(v, p))
-        w = [pi - half_vp * vi for pi, vi in zip(p, v)]
+        p = [2.0 * sum(entry(i, j) * v[j] for j in range(m)) for i in range(m)]
+        vp = sum(vi * pi for vi, pi in zip(v, p))
+        w = [pi - vp * vi for pi, vi in zip(p, v)]
         a.append(A[k][k])
         b.append(alpha)
         for i in range(m):
