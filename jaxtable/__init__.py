@@ -87,12 +87,12 @@ from ._calibration.simulate import (  # noqa: E402
 from ._calibration.validate import Validation, validate  # noqa: E402
 from ._context import Context  # noqa: E402
 from ._design.criteria import CRITERIA as DESIGN_CRITERIA  # noqa: E402
-from ._design.criteria import criteria as design_criteria  # noqa: E402
-from ._design.criteria import first_frequency, stiffness_matrix  # noqa: E402
 from ._design.evaluate import Assessment as DesignAssessment  # noqa: E402
+from ._design.evaluate import _first_frequency as first_frequency  # noqa: E402
+from ._design.evaluate import _stiffness_matrix as stiffness_matrix  # noqa: E402
 from ._design.evaluate import assess as assess_design  # noqa: E402
 from ._design.evaluate import assess_batch as assess_designs  # noqa: E402
-from ._design.evaluate import design_poses  # noqa: E402
+from ._design.evaluate import design_criteria, design_poses  # noqa: E402
 from ._design.hardware import Hardware, hardware_for  # noqa: E402
 from ._design.optimize import Constraint as DesignConstraint  # noqa: E402
 from ._design.optimize import (  # noqa: E402

@@ -78,7 +78,11 @@ def pose_error(actual, commanded) -> Float[ArrayLike, "... 6"]:
     if shape[-1:] != (6,):
         raise ValueError(f"poses must have shape (..., 6); got {a.shape} and {c.shape}")
     a, c = (jnp.broadcast_to(x, shape).reshape(-1, 6) for x in (a, c))
-    return jax.vmap(rot.pose_error)(a, c).reshape(shape)
+    return jnp.asarray(run_batch(_pose_error_row, None, (a, c))).reshape(shape)
+
+
+def _pose_error_row(_, row):
+    return rot.pose_error(*row)
 
 
 def _reach_one(table, pose):
@@ -203,7 +207,9 @@ class ForwardResult(eqx.Module):
 
     def reason(self, i: int) -> str:
         """The `RESULTS` message of command `i` (index into the flattened batch)."""
-        return RESULTS[jax.tree.map(lambda v: jnp.reshape(v, -1)[i], self.result)]
+        # a 0-d numpy array: RESULTS names only array values (a numpy scalar, which a batch
+        # of several chunks returned, read "unknown")
+        return RESULTS[jax.tree.map(lambda v: np.asarray(np.reshape(v, -1)[i]), self.result)]
 
     @property
     def code(self):

@@ -5,7 +5,9 @@ and returns per-leg values with leading axis 6. The public batched versions in `
 wrap them with `jax.vmap`.
 """
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._rotation import rotation_entries, rotation_matrix
@@ -176,7 +178,12 @@ def leg_lines(
 
 
 def in_stroke(table: Table, lengths: Float[ArrayLike, "... 6"]) -> Bool[ArrayLike, "... 6"]:
-    """Elementwise: each joint-to-joint length (mm) inside the table's stroke [lo, hi]."""
+    """Elementwise: each joint-to-joint length (mm) inside the table's stroke [lo, hi]. A
+    numpy `lengths` with a concrete table is checked in numpy (the input checks of the batch
+    APIs: eagerly, jnp compiled a small program per array shape)."""
+    if isinstance(lengths, np.ndarray) and not isinstance(table.stroke, jax.core.Tracer):
+        lo, hi = np.asarray(table.stroke, dtype=float)
+        return (lengths >= lo) & (lengths <= hi)
     lengths = jnp.asarray(lengths)
     return (lengths >= table.stroke[0]) & (lengths <= table.stroke[1])
 

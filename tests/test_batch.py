@@ -31,6 +31,52 @@ def test_run_batch_chunks_pad_and_trace_give_the_plain_vmap():
     np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=1e-15)
 
 
+def test_small_batches_share_a_compiled_size_and_lose_no_row():
+    """Single-chunk batches are padded to a power of two (at least 8, at most the chunk) under
+    LARGE_BATCH rows, to a multiple of chunk/16 above; several chunks are equal multiples of
+    chunk/16. Sizes by hand; 150 and 200 rows then run one compiled program, every row
+    equal to the plain vmap."""
+    import jax.monitoring
+
+    from jaxtable._batch import chunk_rows
+
+    assert [chunk_rows(n, 1 << 16) for n in (1, 8, 9, 150, 200, 256, 257, 4095)] == [
+        8,
+        8,
+        16,
+        256,
+        256,
+        256,
+        512,
+        4096,
+    ]
+    assert chunk_rows(5, 5) == 5 and chunk_rows(3, 6) == 6  # never above the chunk
+    assert chunk_rows(5000, 1 << 16) == 8192 and chunk_rows(4096, 1 << 16) == 4096
+    assert chunk_rows(100_000, 1 << 16) == 53248  # 2 chunks of 50000 -> 13 x 4096
+    assert chunk_rows(23, 5) == 5 and chunk_rows(150, 200, n_dev=4) == 200
+    assert chunk_rows(3, 6, n_dev=4) == 8  # a multiple of the device count
+
+    compiles = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(kw.get("fun_name"))
+
+    def odd(shared, row):  # a function no other test batches: its compiles are this test's
+        return jnp.cos(row) * shared
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        for n in (150, 200):
+            x = np.random.default_rng(n).normal(size=(n, 3))
+            got = np.asarray(run_batch(odd, jnp.asarray(1.5), x))
+            assert got.shape == (n, 3)
+            np.testing.assert_allclose(got, np.cos(x) * 1.5, rtol=1e-14, atol=1e-15)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiles.count("jit(_vmap)") == 1, compiles
+
+
 def test_actuator_command_chunked_equals_one_chunk(table):
     poses = random_poses(1000, seed=3)
     a = np.asarray(jt.actuator_command(table, poses))

@@ -192,6 +192,9 @@ def test_forward_result_code_is_deprecated_in_favour_of_results(table):
     assert np.asarray(res.result == jt.RESULTS.successful).tolist() == [True, False]
     assert res.reason(0) == ""
     assert res.reason(1) != ""
+    # one chunk per command: the result comes back through numpy, the messages the same
+    per_row = jt.forward_solve(table, cmd, chunk=1)
+    assert [per_row.reason(0), per_row.reason(1)] == [res.reason(0), res.reason(1)]
     with pytest.warns(DeprecationWarning, match="RESULTS"):
         code = np.asarray(res.code)
     assert code[0] == 0 and code[1] != 0

@@ -2,12 +2,12 @@
 geometric errors and chosen effects), a controller that commands the nominal inverse
 kinematics, exact forward kinematics of the true table, and a noisy instrument."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._analysis.workspaces import Workspace
 from .._api import actuator_command, forward
+from .._batch import run_batch
 from .._context import Context, batch_context, directions, run_time
 from .._errors import renamed_argument
 from .._table import Table, replace
@@ -70,6 +70,12 @@ def perturb_table(
     )
 
 
+def _reading(target, row):
+    """One stop's full 6-D reading: `row` = (platform pose, instrument frame), (6,) each."""
+    pose, frame = row
+    return observe(pose, frame, target)
+
+
 def simulate(
     nominal: Table,
     true: Table,
@@ -117,11 +123,9 @@ def simulate(
     actual = forward(
         true, cmd, effects=effects, nominal=nominal, guess=poses, context=batch_context(n, ctx)
     )
-    frames = jnp.asarray(np.broadcast_to(np.asarray(frame, float), (len(order), 6)))
+    frames = np.broadcast_to(np.asarray(frame, float), (len(order), 6))
     target = jnp.asarray(target, dtype=jnp.float64)
-    reading = np.asarray(
-        jax.vmap(lambda q, k: observe(q, frames[k], target))(actual, jnp.asarray(index))
-    )
+    reading = np.asarray(run_batch(_reading, target, (np.asarray(actual), frames[index])))
     noise = np.nan_to_num(np.asarray(instrument.noise, float))
     reading = reading + noise * np.random.default_rng(seed).normal(size=reading.shape)
     mask = instrument.mask

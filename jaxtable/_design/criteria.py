@@ -188,7 +188,7 @@ def _soft_min(x, p):
     return low * jnp.sum((x / low) ** (-p)) ** (-1.0 / p)
 
 
-def aggregate(per_pose: dict, smooth=None, coverage_width: float = 1.0) -> dict:
+def aggregate(per_pose: dict, smooth=None, coverage_width: Float[ArrayLike, ""] = 1.0) -> dict:
     """Workspace criteria (scalars, CRITERIA keys except `first_frequency_Hz`) from the
     per-pose quantities of `pose_criteria` batched over poses ((N,) each). `smooth=None`:
     exact worst cases; `smooth=p`: power means (see the module docstring)."""
@@ -224,7 +224,7 @@ def criteria(
     hw: Hardware,
     poses: Float[ArrayLike, "N 6"],
     smooth=None,
-    coverage_width: float = 1.0,
+    coverage_width: Float[ArrayLike, ""] = 1.0,
 ) -> dict:
     """Every criterion of CRITERIA (scalars) of one design over the required poses (N, 6),
     mm / rad. Differentiable in every leaf of `table` and `hw`; `smooth=p` gives the

@@ -7,12 +7,21 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from .._analysis.workspaces import PoseList, Workspace
+from .._batch import _is_traced, run_batch
 from .._errors import TableFileError
 from .._jit import jit
 from .._table import Table
-from .criteria import criteria, pose_criteria, stiffness_matrix
+from .criteria import (
+    aggregate,
+    criteria,
+    first_frequency,
+    pose_criteria,
+    stiffness_matrix,
+    tolerance_cost,
+)
 from .hardware import Hardware, hardware_for
 from .variables import Design, check_design
 
@@ -48,8 +57,49 @@ def as_design(design: "Design | Table", hardware: Hardware | None = None) -> Des
     return Design(design, hardware_for(design) if hardware is None else hardware)
 
 
-_criteria = jit(criteria)
-_per_pose = jit(jax.vmap(pose_criteria, in_axes=(None, None, 0)))
+def _pose_row(shared, pose):
+    table, hw = shared
+    return pose_criteria(table, hw, pose)
+
+
+# compiled forms of the small whole-design functions; the per-pose kernel runs through
+# `run_batch` (its compiled sizes shared between pose counts)
+_aggregate = jit(aggregate)
+_first_frequency = jit(first_frequency)
+_stiffness_matrix = jit(stiffness_matrix)
+_tolerance_cost = jit(tolerance_cost)
+
+
+def evaluate(
+    table: Table, hw: Hardware, poses, smooth=None, coverage_width: Float[ArrayLike, ""] = 1.0
+) -> tuple[dict, dict]:
+    """(`criteria(table, hw, poses, smooth, coverage_width)`, the per-pose quantities of
+    `pose_criteria` ((N,) each)) for concrete input: the per-pose kernel once through
+    `run_batch`, the workspace aggregates from its output (`smooth` and `coverage_width`
+    enter as numbers, so every smoothing shares one small compiled program)."""
+    per = run_batch(_pose_row, (table, hw), np.asarray(poses, dtype=float).reshape(-1, 6))
+    p = None if smooth is None else jnp.asarray(smooth, dtype=jnp.float64)
+    out = dict(_aggregate(per, p, jnp.asarray(coverage_width, dtype=jnp.float64)))
+    out["first_frequency_Hz"] = _first_frequency(table, hw)
+    out["tolerance_cost"] = _tolerance_cost(hw.tolerances)
+    return out, per
+
+
+def design_criteria(
+    table: Table,
+    hw: Hardware,
+    poses: Float[ArrayLike, "N 6"],
+    smooth=None,
+    coverage_width: Float[ArrayLike, ""] = 1.0,
+) -> dict:
+    """Every criterion of CRITERIA (scalars) of one design over the required poses (N, 6),
+    mm / rad; `smooth=p` gives the smoothed worst cases an optimiser should follow (see
+    `criteria`). Differentiable in every leaf of `table` and `hw`: inside a user's jit, vmap
+    or grad it is `criteria`, traced inline; called with concrete values it runs compiled
+    (`evaluate`; op by op, a first call compiled ~270 small programs)."""
+    if _is_traced((table, hw, poses, smooth, coverage_width)):
+        return criteria(table, hw, poses, smooth, coverage_width)
+    return evaluate(table, hw, poses, smooth, coverage_width)[0]
 
 
 @dataclass
@@ -80,10 +130,9 @@ def assess(
     check_design(design)
     poses = design_poses(workspace, n_sweep, n_random, seed)
     table = design.table()
-    values = {k: float(v) for k, v in _criteria(table, design.hardware, jnp.asarray(poses)).items()}
-    per_pose = {
-        k: np.asarray(v) for k, v in _per_pose(table, design.hardware, jnp.asarray(poses)).items()
-    }
+    values, per_pose = evaluate(table, design.hardware, poses)
+    values = {k: float(v) for k, v in values.items()}
+    per_pose = {k: np.asarray(v) for k, v in per_pose.items()}
     if values["coverage"] == 0.0:
         worst = float(np.max(-per_pose["margin"]))
         raise TableFileError(
@@ -92,7 +141,7 @@ def assess(
             f"{np.rad2deg(float(table.joint_angle_limit)):g} deg); the nearest misses by "
             f"{worst:.4g} mm"
         )
-    K = np.asarray(stiffness_matrix(table, jnp.zeros(6), design.hardware.leg_stiffness))
+    K = np.asarray(_stiffness_matrix(table, jnp.zeros(6), design.hardware.leg_stiffness))
     return Assessment(design, poses, values, K, per_pose)
 
 
