@@ -181,7 +181,8 @@ def run_batch(fn, shared, batched, *, chunk: int = DEFAULT_CHUNK, progress=None)
     once per shape); `shared`: a pytree used by every row (tables, effects, options; non-array
     leaves are static); `batched`: a pytree whose array leaves all have the same leading
     number of rows. Returns the pytree of outputs with that leading axis: jax arrays when the
-    batch was one chunk on one device or the input was traced, else numpy arrays.
+    batch filled one chunk exactly (`chunk_rows`) on one device or the input was traced,
+    else numpy arrays.
     `progress`: a description string (or True) for a progress bar over the rows.
     """
     if _is_traced((shared, batched)):

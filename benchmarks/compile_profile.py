@@ -1,0 +1,119 @@
+"""Where the test suite's time goes to compilation: a pytest plugin and its summary.
+
+    python -m pytest -p benchmarks.compile_profile          # writes one JSON per worker
+    python -m benchmarks.compile_profile                     # prints the summary
+
+The plugin sums JAX's compile events (`jax.monitoring`: tracing, lowering, XLA's backend
+compile) per test and per program name, in each pytest-xdist worker, and writes them to
+`$JAXTABLE_COMPILE_PROFILE` (default `.pytest_cache/compile_profile`). Run it from an empty
+compilation cache (`rm -rf .pytest_cache`) to see what a clean clone compiles. Programs named
+`jit(<operation>)` for a single jax.numpy / lax operation come from code run eagerly, op by
+op. Tests that start subprocesses (studies, scale-out workers, the command line's child
+runs) compile outside these sums.
+"""
+
+import collections
+import json
+import os
+import re
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+DEFAULT = Path(".pytest_cache") / "compile_profile"
+EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "compile",
+}
+
+
+def _out() -> Path:
+    return Path(os.environ.get("JAXTABLE_COMPILE_PROFILE", DEFAULT))
+
+
+class _Recorder:
+    def __init__(self):
+        self.test = "<outside tests>"
+        self.tests = collections.defaultdict(lambda: collections.Counter())
+        self.programs = collections.defaultdict(lambda: collections.Counter())
+        self.wall = {}
+
+    def listen(self, event, duration, fun_name="?", **_):
+        kind = EVENTS.get(event)
+        if kind is None:
+            return
+        self.tests[self.test][kind] += duration
+        self.tests[self.test][kind + "_n"] += 1
+        if kind == "compile":
+            self.programs[fun_name]["compile"] += duration
+            self.programs[fun_name]["n"] += 1
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(self, item, nextitem):
+        self.test = item.nodeid
+        t0 = time.perf_counter()
+        yield
+        self.wall[item.nodeid] = time.perf_counter() - t0
+        self.test = "<between tests>"
+
+    def pytest_unconfigure(self, config):
+        out = _out()
+        out.mkdir(parents=True, exist_ok=True)
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        data = {"tests": self.tests, "programs": self.programs, "wall": self.wall}
+        (out / f"{worker}.json").write_text(json.dumps(data))
+
+
+def pytest_configure(config):
+    import jax.monitoring
+
+    rec = _Recorder()
+    jax.monitoring.register_event_duration_secs_listener(rec.listen)
+    config.pluginmanager.register(rec, "compile_profile_recorder")
+
+
+def _eager(name: str) -> bool:
+    import jax.lax
+    import jax.numpy as jnp
+
+    m = re.fullmatch(r"jit\(([a-z_0-9]+)\)", name)
+    return bool(m) and (hasattr(jnp, m.group(1).lstrip("_")) or hasattr(jax.lax, m.group(1)))
+
+
+def summary(out: Path, top: int = 25) -> str:
+    tests, programs, wall = {}, collections.defaultdict(collections.Counter), {}
+    for path in sorted(out.glob("*.json")):
+        d = json.loads(path.read_text())
+        tests.update(d["tests"])
+        wall.update(d["wall"])
+        for k, v in d["programs"].items():
+            programs[k].update(v)
+    total = collections.Counter()
+    for v in tests.values():
+        total.update(v)
+    eager = [v for k, v in programs.items() if _eager(k)]
+    lines = [
+        f"{len(wall)} tests, {sum(wall.values()):.0f} worker-s in tests; XLA compile "
+        f"{total['compile']:.0f} s ({total['compile_n']:.0f} programs), tracing "
+        f"{total['trace']:.0f} s, lowering {total['lower']:.0f} s; eager single operations "
+        f"{sum(v['compile'] for v in eager):.0f} s ({sum(v['n'] for v in eager):.0f} programs)",
+        "",
+        "programs by compile time (s, count):",
+    ]
+    for k, v in sorted(programs.items(), key=lambda kv: -kv[1]["compile"])[:top]:
+        lines.append(f"  {v['compile']:8.1f} {v['n']:6.0f}  {k}")
+    lines += ["", "tests by wall time (s; compile, trace, compiled programs):"]
+    for t in sorted(wall, key=wall.get, reverse=True)[:top]:
+        v = tests.get(t, {})
+        lines.append(
+            f"  {wall[t]:6.1f}  {v.get('compile', 0):6.1f} {v.get('trace', 0):5.1f} "
+            f"{v.get('compile_n', 0):5.0f}  {t}"
+        )
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(summary(Path(sys.argv[1]) if len(sys.argv) > 1 else _out()))
