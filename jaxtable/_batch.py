@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._errors import is_concrete
 from ._jit import LARGE_BATCH, jit
 
 DEFAULT_CHUNK = 1 << 16
@@ -75,10 +76,6 @@ def _vmapped_for(rows: int):
 @eqx.filter_jit
 def _chunked(fn, shared, batched, chunk):
     return map_batch(partial(fn, shared), batched, chunk=chunk)
-
-
-def _is_traced(tree) -> bool:
-    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
 
 
 def batch_mesh():
@@ -185,7 +182,7 @@ def run_batch(fn, shared, batched, *, chunk: int = DEFAULT_CHUNK, progress=None)
     else numpy arrays.
     `progress`: a description string (or True) for a progress bar over the rows.
     """
-    if _is_traced((shared, batched)):
+    if not is_concrete(shared, batched):
         return _chunked(fn, shared, batched, chunk)
     batched = jax.tree.map(np.asarray, batched)
     n = jax.tree.leaves(batched)[0].shape[0]

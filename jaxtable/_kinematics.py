@@ -5,11 +5,11 @@ and returns per-leg values with leading axis 6. The public batched versions in `
 wrap them with `jax.vmap`.
 """
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ._errors import is_concrete
 from ._rotation import rotation_entries, rotation_matrix
 from ._table import Table
 
@@ -181,7 +181,7 @@ def in_stroke(table: Table, lengths: Float[ArrayLike, "... 6"]) -> Bool[ArrayLik
     """Elementwise: each joint-to-joint length (mm) inside the table's stroke [lo, hi]. A
     numpy `lengths` with a concrete table is checked in numpy (the input checks of the batch
     APIs: eagerly, jnp compiled a small program per array shape)."""
-    if isinstance(lengths, np.ndarray) and not isinstance(table.stroke, jax.core.Tracer):
+    if isinstance(lengths, np.ndarray) and is_concrete(table.stroke):
         lo, hi = np.asarray(table.stroke, dtype=float)
         return (lengths >= lo) & (lengths <= hi)
     lengths = jnp.asarray(lengths)

@@ -10,8 +10,8 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._analysis.workspaces import PoseList, Workspace
-from .._batch import _is_traced, run_batch
-from .._errors import TableFileError
+from .._batch import run_batch
+from .._errors import TableFileError, is_concrete
 from .._jit import jit
 from .._table import Table
 from .criteria import (
@@ -97,7 +97,7 @@ def design_criteria(
     `criteria`). Differentiable in every leaf of `table` and `hw`: inside a user's jit, vmap
     or grad it is `criteria`, traced inline; called with concrete values it runs compiled
     (`evaluate`; op by op, a first call compiled ~270 small programs)."""
-    if _is_traced((table, hw, poses, smooth, coverage_width)):
+    if not is_concrete(table, hw, poses, smooth, coverage_width):
         return criteria(table, hw, poses, smooth, coverage_width)
     return evaluate(table, hw, poses, smooth, coverage_width)[0]
 
