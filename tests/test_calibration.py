@@ -192,7 +192,7 @@ def test_fit_jacobian_equals_central_differences(table):
     import jax.numpy as jnp
     from jax.flatten_util import ravel_pytree
 
-    from jaxtable._calibration.fit import _jacobian, _scales, residual_jit, setup
+    from jaxtable._calibration.fit import _scales, jacobian, residual_jit, setup
     from jaxtable._effects import Backlash, Compliance, Spiral
     from jaxtable._params import GEOMETRY
 
@@ -218,12 +218,12 @@ def test_fit_jacobian_equals_central_differences(table):
     free = GEOMETRY + ("spiral.lead", "backlash.w", "compliance.flex")
     st = setup(table, concat(*runs), free, effects=model)
     flat, unravel = ravel_pytree(st.theta0)
-    J0, _, _ = _jacobian(st.problem, st.layout, st.theta0)
+    J0, _, _ = jacobian(st.problem, st.layout, st.theta0)
     assert np.all(np.linalg.norm(np.asarray(J0), axis=0) > 0)  # every parameter matters
     # D: a step of D_j moves the weighted residual by about one unit
     D = np.asarray(_scales(J0, jnp.ones(flat.shape)))
     f = np.asarray(flat) + D * np.random.default_rng(0).standard_normal(flat.shape)
-    J, _, solved = _jacobian(st.problem, st.layout, unravel(jnp.asarray(f)))
+    J, _, solved = jacobian(st.problem, st.layout, unravel(jnp.asarray(f)))
     assert np.all(np.asarray(solved))
 
     def res(x):

@@ -169,11 +169,11 @@ def test_gradients_of_every_criterion_equal_central_differences(design):
         c = jt.design_criteria(d.table(), d.hardware, jnp.asarray(poses), smooth=16.0)
         return jnp.stack([c[k] for k in jt.DESIGN_CRITERIA])
 
-    c0 = np.asarray(crit(x0))
+    f = jax.jit(crit)
+    c0 = np.asarray(f(x0))
     assert 0.05 < c0[0] < 0.999  # part of this workspace is out of reach: coverage has a slope
     G = np.asarray(jax.jit(jax.jacfwd(crit))(x0))
     h = np.array([1e-3, 1e-6, 1e-3, 1e-5, 1e-1])
-    f = jax.jit(crit)
     for j in range(len(names)):
         e = np.zeros(len(names))
         e[j] = h[j]
@@ -284,6 +284,26 @@ def test_constraint_is_met_and_binds(design):
     assert r.optimum.values["first_frequency_Hz"] == pytest.approx(limit, rel=0.01)  # it binds
     assert r.value < free.value  # the constraint costs dexterity
     assert r.value > free.value - 0.2  # ... but the optimiser still found a good design
+    # a tighter limit binds too, and runs the program the first limit compiled: the limits,
+    # bounds and poses are arguments of the optimiser's program, not constants in it
+    traced = []
+
+    def listen(event, duration, fun_name="?", **kw):
+        if event == "/jax/core/compile/jaxpr_trace_duration":
+            traced.append(fun_name)
+
+    tight = 0.25 * f_free + 0.75 * f_max
+    con = jt.parse_constraint(f"first_frequency_Hz>={tight}")
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        r2 = jt.optimize_design(
+            design, names, "gci", [con], workspace=poses, bounds=bounds, starts=2
+        )
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert not [n for n in traced if "round" in n or "criteria" in n], traced
+    assert r2.feasible and r2.optimum.values["first_frequency_Hz"] == pytest.approx(tight, rel=0.01)
+    assert r2.value < r.value
 
 
 # ---------------------------------------------------------------- bad input

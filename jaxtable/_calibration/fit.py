@@ -204,8 +204,9 @@ def _residual_and_jacobian(problem, layout, unravel):
 
 
 @jit
-def _jacobian(problem, layout, theta):
-    """(J, residual, solved) at θ (see `_residual_and_jacobian`)."""
+def jacobian(problem: Problem, layout: Layout, theta):
+    """(J (N·6, P), residual (N·6,), solved (N,)) at θ: the weighted residual's Jacobian on
+    the flat parameters (see `_residual_and_jacobian`)."""
     flat, unravel = ravel_pytree(theta)
     J, (r, solved) = _residual_and_jacobian(problem, layout, unravel)(flat)
     return J, r, solved
@@ -328,12 +329,12 @@ def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_n
     Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ)."""
     if method == "gauss_newton":
         return _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond)
-    J0, r0, _ = _jacobian(problem, layout, theta0)
+    J0, r0, _ = jacobian(problem, layout, theta0)
     D = _scales(J0, mask)
     value, converged, steps = _levenberg_marquardt(
         problem, layout, theta0, D, rtol, atol, max_steps
     )
-    J, r, solved = _jacobian(problem, layout, value)
+    J, r, solved = jacobian(problem, layout, value)
     return value, converged, steps, J, solved, r0, r
 
 

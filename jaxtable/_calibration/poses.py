@@ -32,14 +32,13 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.flatten_util import ravel_pytree
 
 from .. import _params as params
 from .._forward import platform_radius
 from .._jit import jit
 from .._table import Table
 from .._threads import one_blas_thread
-from .fit import Layout, make_problem, residual, setup, zero_steps
+from .fit import Layout, jacobian, make_problem, setup, zero_steps
 from .instruments import Instrument, observe
 from .measurements import Measurements
 from .simulate import plan_random
@@ -103,12 +102,6 @@ class PoseJacobians:
         )
 
 
-@jit
-def _jacobian(problem, layout, theta):
-    flat, unravel = ravel_pytree(theta)
-    return jax.jacfwd(lambda f: residual(unravel(f), (problem, layout)))(flat)
-
-
 def _check_poses(poses, name: str) -> np.ndarray:
     poses = np.asarray(poses, dtype=float)
     if poses.ndim != 2 or poses.shape[1] != 6:
@@ -159,7 +152,7 @@ def pose_jacobians(
         theta["frame"] = jnp.zeros_like(theta["frame"])
     if "target" in theta:
         theta["target"] = jnp.asarray(tgt[list(st.layout.target_dofs)])
-    J = np.asarray(_jacobian(st.problem, st.layout, theta))
+    J = np.asarray(jacobian(st.problem, st.layout, theta)[0])
     J = J.reshape(len(poses), 6, -1)[:, mask, :]
     nuisance = np.array([n.startswith(("frame[", "target.")) for n in st.names])
     return PoseJacobians(
@@ -444,7 +437,7 @@ def pose_sensitivities(jac: PoseJacobians, poses) -> np.ndarray:
     problem = make_problem(jac.nominal, data, jac.effects, jac.bases, jac.compensated)
     layout = Layout(tuple(jac.layout.free), (), (), 1, jac.layout.gauge)
     theta = zero_steps(jac.nominal, jac.effects, layout.free, jac.bases)
-    S = np.asarray(_jacobian(problem, layout, theta)).reshape(len(poses), 6, -1)
+    S = np.asarray(jacobian(problem, layout, theta)[0]).reshape(len(poses), 6, -1)
     out = np.zeros((len(poses), 6, len(jac.names)))
     out[:, :, ~jac.nuisance] = S
     return out

@@ -15,18 +15,19 @@ one vmapped solve. The winner is chosen on the EXACT criteria over the full pose
 objective among the candidates that meet every constraint (else the least violation).
 """
 
-import functools
 import itertools
 import re
 import sys
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jaxtyping import ArrayLike, Float
 
-from .._jit import compiler_options
+from .._jit import jit
 from .._threads import one_blas_thread
 from .criteria import CRITERIA, criteria
 from .evaluate import Assessment, assess, assess_batch, design_poses
@@ -58,12 +59,17 @@ class Constraint:
 
     def violation(self, value):
         """Relative violation (> 0 when broken)."""
-        scale = abs(self.limit) if self.limit != 0 else 1.0
-        d = value - self.limit if self.op == "<=" else self.limit - value
-        return d / scale
+        return _relative_violation(self.op, self.limit, value)
 
     def __str__(self):
         return f"{self.name}{self.op}{self.limit:g}"
+
+
+def _relative_violation(op: str, limit, value):
+    """(value − limit) / |limit| for '<=', (limit − value) / |limit| for '>=' (|limit| taken
+    as 1 for a zero limit); `limit` and `value` numbers or arrays, traced or not."""
+    d = value - limit if op == "<=" else limit - value
+    return d / (abs(limit) + (limit == 0))
 
 
 def parse_constraint(text: str) -> Constraint:
@@ -172,24 +178,71 @@ def _candidates(design, vary, lead_catalogue):
     return designs, labels
 
 
-def _solve_batch(loss, z0, args, smooth, progress=False):
-    """Minimise `loss(z, (mu, p, *args))` for every row of z0 / args (vmapped), over ROUNDS,
-    warm-started; one compiled program runs every round."""
+class _Loss(eqx.Module):
+    """The penalised loss of `optimize_design` (module docstring) as a pytree: its numbers
+    are arrays and its structure static, so every optimisation of the same variables,
+    objective and kinds of constraint runs one compiled program, whatever the design,
+    bounds, limits and poses."""
+
+    lo: Float[ArrayLike, " V"]  # lower bounds of the flattened continuous variables
+    hi: Float[ArrayLike, " V"]
+    poses: Float[ArrayLike, "Q 6"]  # the reduced pose set the criteria are smoothed over
+    limits: Float[ArrayLike, " C"]  # constraint limits
+    sign: Float[ArrayLike, ""]  # −1 where more is better
+    f_scale: Float[ArrayLike, ""]  # |objective at the start|
+    names: tuple = eqx.field(static=True)  # the continuous variables
+    shapes: tuple = eqx.field(static=True)  # their shapes
+    objective: str = eqx.field(static=True)
+    kinds: tuple = eqx.field(static=True)  # (criterion, op) of each constraint
+    epsilon: tuple | None = eqx.field(static=True)  # (criterion, op) of the ε-constraint
+
+    def values(self, z):
+        """{variable: value} at the unbounded z (V,): numpy for numpy z, else jax."""
+        xp = np if isinstance(z, np.ndarray) else jnp
+        lo, hi = (xp.asarray(x) for x in (self.lo, self.hi))
+        v = lo + (hi - lo) / (1.0 + xp.exp(-z))  # the logistic sigmoid
+        sizes = [int(np.prod(s)) for s in self.shapes]
+        parts = xp.split(v, np.cumsum(sizes)[:-1])
+        return {n: p.reshape(s) for n, p, s in zip(self.names, parts, self.shapes)}
+
+    def __call__(self, z, args):
+        mu, p, d, eps = args
+        c = _criteria_once(set_values(d, self.values(z)).table(), d.hardware, self.poses, p)
+        pen = sum(
+            jnp.maximum(0.0, _relative_violation(op, lim, c[name])) ** 2
+            for (name, op), lim in zip(self.kinds, self.limits)
+        )
+        if self.epsilon is not None:
+            name, op = self.epsilon
+            pen = pen + jnp.maximum(0.0, _eps_violation(op, c[name], eps)) ** 2
+        return self.sign * c[self.objective] / self.f_scale + mu * pen
+
+
+# `criteria` as a nested jit: its ~7,600-equation program is traced once, then reused by
+# each of the several traces BFGS makes of the loss and its gradient (jit caches the traced
+# program and its derivative by argument types)
+_criteria_once = jax.jit(criteria)
+
+
+@jit
+def _round(loss: _Loss, z, mu, p, args):
+    """One penalty round: BFGS on `loss` from every row of z (vmapped with the rows of
+    `args`); `mu` and `p` traced, so every round runs one program."""
     solver = optx.BFGS(rtol=1e-6, atol=1e-8)
 
-    # plain jax.jit with the quick options, not `_jit.jit`: filter_jit would make the
-    # round's float penalty weights static and compile once per round
-    @functools.partial(jax.jit, compiler_options=compiler_options())
-    def round_(z, mu, p, a):
-        def one(z, a):
-            sol = optx.minimise(loss, solver, z, args=(mu, p, *a), max_steps=200, throw=False)
-            return sol.value
+    def one(z, a):
+        sol = optx.minimise(loss, solver, z, args=(mu, p, *a), max_steps=200, throw=False)
+        return sol.value
 
-        return jax.vmap(one)(z, a)
+    return jax.vmap(one)(z, args)
 
+
+def _solve_batch(loss: _Loss, z0, args, smooth, progress=False):
+    """Minimise `loss(z, (mu, p, *args))` for every row of z0 / args (vmapped), over ROUNDS,
+    warm-started."""
     z = z0
     for k, (mu, factor) in enumerate(ROUNDS):
-        z = round_(z, mu, smooth * factor, args)
+        z = _round(loss, z, np.float64(mu), np.float64(smooth * factor), args)
         _say(progress, f"  penalty round {k + 1}/{len(ROUNDS)} done")
     return z
 
@@ -247,24 +300,22 @@ def optimize_design(
     if cont:
         bnd = _bounds(design, cont, bounds)
         shapes = [np.shape(bnd[n][0]) for n in cont]
-        sizes = [int(np.prod(s)) for s in shapes]
-        lo = jnp.asarray(np.concatenate([np.ravel(bnd[n][0]) for n in cont]))
-        hi = jnp.asarray(np.concatenate([np.ravel(bnd[n][1]) for n in cont]))
+        lo = np.concatenate([np.ravel(bnd[n][0]) for n in cont])
+        hi = np.concatenate([np.ravel(bnd[n][1]) for n in cont])
 
-        def values(z):
-            v = lo + (hi - lo) * jax.nn.sigmoid(z)
-            parts = jnp.split(v, np.cumsum(sizes)[:-1])
-            return {n: p.reshape(s) for n, p, s in zip(cont, parts, shapes)}
-
-        def loss(z, args):
-            mu, p, d, eps = args
-            d = set_values(d, values(z))
-            c = criteria(d.table(), d.hardware, opt_poses, p)
-            pen = sum(jnp.maximum(0.0, k.violation(c[k.name])) ** 2 for k in cons)
-            if epsilon is not None:
-                pen = pen + jnp.maximum(0.0, _eps_violation(epsilon, c[epsilon[0]], eps)) ** 2
-            return sign * c[objective] / f_scale + mu * pen
-
+        loss = _Loss(
+            lo,
+            hi,
+            opt_poses,
+            np.asarray([k.limit for k in cons], float),
+            np.float64(sign),
+            np.float64(f_scale),
+            tuple(cont),
+            tuple(shapes),
+            objective,
+            tuple((k.name, k.op) for k in cons),
+            None if epsilon is None else (epsilon[0], epsilon[1]),
+        )
         v0 = np.concatenate([np.ravel(np.asarray(get(design, n))) for n in cont])
         u0 = (v0 - np.asarray(lo)) / (np.asarray(hi) - np.asarray(lo))
         rng = np.random.default_rng(seed)
@@ -282,7 +333,9 @@ def optimize_design(
             f"{len(opt_poses)} poses (compiling first) ...",
         )
         Z = np.asarray(_solve_batch(loss, Z0, (D, E), smooth, progress))
-        finals = [set_values(designs[i], values(jnp.asarray(z))) for (i, _, _), z in zip(rows, Z)]
+        finals = [
+            set_values(designs[i], loss.values(jnp.asarray(z))) for (i, _, _), z in zip(rows, Z)
+        ]
     else:
         rows = [(i, 0, 0) for i in range(len(designs))]
         finals = designs
@@ -298,7 +351,7 @@ def optimize_design(
         idx = [r for r, row in enumerate(rows) if row[1] == e]
         v = viol[idx].copy()
         if epsilon is not None:
-            v += np.maximum(0.0, _eps_violation(epsilon, exact[epsilon[0]][idx], eps_values[e]))
+            v += np.maximum(0.0, _eps_violation(epsilon[1], exact[epsilon[0]][idx], eps_values[e]))
         obj = sign * exact[objective][idx]
         ok = v <= FEASIBLE
         pick = (
@@ -335,9 +388,8 @@ def optimize_design(
     )
 
 
-def _eps_violation(epsilon, value, eps):
+def _eps_violation(op, value, eps):
     """Relative violation of the ε-constraint `value op eps` (> 0 when broken)."""
-    _, op, _ = epsilon
     d = value - eps if op == "<=" else eps - value
     return d / (abs(eps) + 1e-12)
 
