@@ -15,6 +15,13 @@ from ._linalg import lu_small, lu_solve_small, solve_small
 from ._model import length_residual
 from ._table import Table
 
+# The residual as a nested jit, for the solves that are differentiated (fits, Jacobians):
+# traced once, then reused by the solve's several uses of it (first step, Newton and chord
+# loops, final residual, the implicit derivative) and by their transformations, which JAX
+# caches per traced program: a fit's tracing 10 -> 6 s. Not in the plain solve: the call
+# boundary costs the batched forward kinematics ~10 % of its run time.
+_length_residual_once = eqx.filter_jit(length_residual)
+
 
 class RESULTS(optx.RESULTS):  # pyright: ignore
     """Outcome of a forward solve: optimistix's (and lineax's) results, plus jaxtable's own.
@@ -64,7 +71,7 @@ def platform_radius(table: Table) -> Float[ArrayLike, ""]:
     return jnp.mean(jnp.linalg.norm(table.platform_joints, axis=-1))
 
 
-def _newton(table, effects, s, guess, ctx, options):
+def _newton(table, effects, s, guess, ctx, options, residual=length_residual):
     """Newton's method on the scaled pose, written as one `lax.while_loop` whose body is
     the residual, its 6×6 Jacobian (one `jacfwd`, primal shared) and a fused elimination
     (`solve_small`); no derivative (see `forward_one`).
@@ -73,12 +80,13 @@ def _newton(table, effects, s, guess, ctx, options):
     from y_k when max|Δy / (atol + rtol·|y_k+1|)| < 1 and max|r(y_k)| < atol. Written out
     rather than through `optx.root_find` because this solve sits inside every batched map,
     fit and Jacobian: the loop compiles to a fifth of the code (compile time of every
-    program that contains it) and runs ~1.5× faster per step."""
+    program that contains it) and runs ~1.5× faster per step. `residual`: `length_residual`
+    or its nested jit (`_length_residual_once`)."""
     table, effects, s, guess, ctx = jax.lax.stop_gradient((table, effects, s, guess, ctx))
     scale = jnp.concatenate([jnp.ones(3), jnp.full(3, platform_radius(table))])
 
     def fn(y):
-        r = length_residual(table, effects, y / scale, s, ctx)
+        r = residual(table, effects, y / scale, s, ctx)
         return r, r
 
     def cond(carry):
@@ -187,14 +195,14 @@ def _solve_jvp(options, primals, tangents):
     with a plain-jnp 6×6 solve (no LAPACK call, no error on a failed primal)."""
     table, effects, s, guess, ctx = primals
     t_table, t_effects, t_s, _, _ = tangents
-    out = _newton(table, effects, s, guess, ctx, options)
+    out = _newton(table, effects, s, guess, ctx, options, _length_residual_once)
     q = out[0]
     _, dr = jax.jvp(
-        lambda t, e, s_: length_residual(t, e, q, s_, ctx),
+        lambda t, e, s_: _length_residual_once(t, e, q, s_, ctx),
         (table, effects, s),
         (t_table, t_effects, t_s),
     )
-    Jq = jax.jacfwd(lambda qq: length_residual(table, effects, qq, s, ctx))(q)
+    Jq = jax.jacfwd(lambda qq: _length_residual_once(table, effects, qq, s, ctx))(q)
     dq = -solve_small(Jq, dr[:, None])[:, 0]
     no_tangent = jax.tree.map(lambda x: np.zeros(np.shape(x), dtype=jax.dtypes.float0), out[1:3])
     return out, (dq, *no_tangent, jnp.zeros_like(out[3]))
