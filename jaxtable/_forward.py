@@ -18,7 +18,7 @@ from ._table import Table
 # The residual as a nested jit, for the solves that are differentiated (fits, Jacobians):
 # traced once, then reused by the solve's several uses of it (first step, Newton and chord
 # loops, final residual, the implicit derivative) and by their transformations, which JAX
-# caches per traced program: a fit's tracing 10 -> 6 s. Not in the plain solve: the call
+# caches per traced program: a fit's tracing 10 -> 7.5 s. Not in the plain solve: the call
 # boundary costs the batched forward kinematics ~10 % of its run time.
 _length_residual_once = eqx.filter_jit(length_residual)
 

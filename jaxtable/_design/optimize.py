@@ -317,7 +317,7 @@ def optimize_design(
             None if epsilon is None else (epsilon[0], epsilon[1]),
         )
         v0 = np.concatenate([np.ravel(np.asarray(get(design, n))) for n in cont])
-        u0 = (v0 - np.asarray(lo)) / (np.asarray(hi) - np.asarray(lo))
+        u0 = (v0 - lo) / (hi - lo)
         rng = np.random.default_rng(seed)
         us = np.concatenate([u0[None], rng.uniform(0.02, 0.98, (starts - 1, len(v0)))])
         us = np.clip(us, 1e-6, 1 - 1e-6)
@@ -333,9 +333,7 @@ def optimize_design(
             f"{len(opt_poses)} poses (compiling first) ...",
         )
         Z = np.asarray(_solve_batch(loss, Z0, (D, E), smooth, progress))
-        finals = [
-            set_values(designs[i], loss.values(jnp.asarray(z))) for (i, _, _), z in zip(rows, Z)
-        ]
+        finals = [set_values(designs[i], loss.values(z)) for (i, _, _), z in zip(rows, Z)]
     else:
         rows = [(i, 0, 0) for i in range(len(designs))]
         finals = designs
