@@ -31,7 +31,7 @@ from .._kinematics import (
     rod_rotation,
     twist_gradients,
 )
-from .._linalg import solve_small
+from .._linalg import computed_once, solve_small
 from .._model import inverse_extension, length_residual
 from .._rotation import euler_rate_matrix, rotation_entries, rotation_matrix
 from .._table import Table
@@ -122,9 +122,11 @@ def budget_jacobians_one(table: Table, pose: Float[ArrayLike, "6"]):
     spiral = table.signed_lead * turns
     s = L - table.zero_lengths - spiral
     c = table.signed_lead / (2 * jnp.pi)
-    dt = tuple(l[k] / L - c * g[k] for k in range(3))
+    # K's entries each written once: else every fusion that reads K (its inverse reads it
+    # entry by entry) recomputes the leg and twist geometry behind them
+    dt = tuple(computed_once(l[k] / L - c * g[k]) for k in range(3))
     m1, m2 = _cross(ra, dt), _cross(j, h)
-    dw = tuple(m1[k] - c * m2[k] for k in range(3))
+    dw = tuple(computed_once(m1[k] - c * m2[k]) for k in range(3))
     db = tuple(-dt[k] - c * g0[k] for k in range(3))
     da = tuple(R[0][k] * dt[0] + R[1][k] * dt[1] + R[2][k] * dt[2] + c * g0[k] for k in range(3))
     K = jnp.stack(dt + dw, axis=1)
