@@ -19,13 +19,11 @@ def computed_once(x, one_from=None):
     XLA's fusion prices arithmetic as cheap and recomputes a cheap value inside every fusion
     that reads it; a division it never duplicates, so its result is written once and read
     where needed. For values that many later expressions share: the Householder
-    projections of `qr_small` and `tridiagonal_small` (the tridiagonalisation recomputed each
-    about five times), a matrix read entry by entry (else recomputed once per entry), the
-    error map's Jacobian rows. Not for kernels that fuse into one loop anyway (the attitude's
-    sines and cosines in the pose -> command map: 5 % slower that way). The divisor 1 is
-    computed from `one_from` (default `x`), so it is not a constant XLA could fold away;
-    pass a value that is not a tangent where `x` must stay linear (a solve's right-hand
-    side, for reverse mode)."""
+    projections of `tridiagonal_small` (recomputed each about five times), the error map's
+    Jacobian rows. Not for kernels that fuse into one loop anyway (the attitude's sines and
+    cosines in the pose -> command map: 5 % slower that way). The divisor 1 is computed
+    from `one_from` (default `x`), so it is not a constant XLA could fold away; pass a value
+    that is not a tangent where `x` must stay linear (for reverse mode)."""
     return x / (1.0 + 0.0 * (x if one_from is None else one_from))
 
 
@@ -96,70 +94,8 @@ def _solve_small_jvp(primals, tangents):
     return X, lu_solve_small(LU, perm, dB - dA @ X)
 
 
-def qr_small(A: Float[ArrayLike, "n n"]):
-    """A = QR by Householder reflections, unrolled over the n − 1 columns and written on
-    scalar entries (one element-wise expression per entry under `vmap`: no pivoting, no
-    gathers, no dots). Returns (QR, d), as LAPACK packs it: R on and above the diagonal of
-    QR (n, n); the unit reflection vector v_k of step k below the diagonal of column k, its
-    leading entry in d[k] (d (n,), last entry 0); Q = H_0 ⋯ H_{n−2}, H_k = I − 2 v_k v_kᵀ.
-
-    Backward stable without pivoting, and under `vmap` it runs faster than `lu_small`
-    (6×6: inverse 0.61 → 0.33 µs, one solve 0.33 → 0.16 µs a pose), but its scalar form is
-    several times the code: as the forward solve's factorisation, `jaxtable diagnose`'s first
-    run (compilation) went from 32.5 to 40 s for no gain in forward kinematics. So it serves
-    the kernels that stream large batches (the error map's inverse), and `solve_small` keeps
-    the LU. A zero column gives a zero reflection (H = I) and a zero pivot in R: solves of a
-    singular matrix are non-finite, as with elimination. The projections vᵀa_j are
-    `computed_once`: each feeds every entry of its column."""
-    A = computed_once(jnp.asarray(A))  # read entry by entry: else each recomputes A
-    n = A.shape[0]
-    M = [[A[i, j] for j in range(n)] for i in range(n)]
-    d = [jnp.zeros((), A.dtype)] * n
-    for k in range(n - 1):
-        x = [M[i][k] for i in range(k, n)]
-        alpha = -jnp.where(x[0] >= 0, 1.0, -1.0) * jnp.sqrt(sum(xi * xi for xi in x))
-        v = [x[0] - alpha] + x[1:]
-        norm = jnp.sqrt(sum(vi * vi for vi in v))
-        v = [vi / jnp.where(norm > 0, norm, 1.0) for vi in v]
-        for j in range(k + 1, n):
-            t = computed_once(2.0 * sum(v[i] * M[k + i][j] for i in range(n - k)))
-            for i in range(n - k):
-                M[k + i][j] = M[k + i][j] - v[i] * t
-        M[k][k], d[k] = alpha, v[0]
-        for i in range(1, n - k):
-            M[k + i][k] = v[i]
-    return jnp.array(M), jnp.stack(d)
-
-
-def qr_solve_small(QR, B: Float[ArrayLike, "n k"]) -> Float[ArrayLike, "n k"]:
-    """Solve A X = B from `qr_small(A)`: X = R⁻¹ Qᵀ B (the reflections applied to B, then
-    back substitution); linear in B (so it transposes for reverse mode)."""
-    M, d = QR
-    one = M[0, 0]  # a primal: the solve stays linear in B
-    B = computed_once(jnp.asarray(B), one)  # read entry by entry (see `qr_small`)
-    n, m = B.shape
-    X = [[B[i, j] for j in range(m)] for i in range(n)]
-    for k in range(n - 1):
-        v = [d[k]] + [M[k + i, k] for i in range(1, n - k)]
-        for j in range(m):
-            t = computed_once(2.0 * sum(v[i] * X[k + i][j] for i in range(n - k)), one)
-            for i in range(n - k):
-                X[k + i][j] = X[k + i][j] - v[i] * t
-    for i in range(n - 1, -1, -1):
-        for j in range(m):
-            rest = sum((M[i, c] * X[c][j] for c in range(i + 1, n)), 0.0)
-            X[i][j] = (X[i][j] - rest) / M[i, i]
-    return jnp.array(X)
-
-
 def inv_small(A: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "n n"]:
-    """A⁻¹ by `solve_small` (differentiable; compact code)."""
     return solve_small(A, jnp.eye(A.shape[0], dtype=A.dtype))
-
-
-def inv_qr_small(A: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "n n"]:
-    """A⁻¹ by `qr_small`: for kernels that stream large batches (not differentiated)."""
-    return qr_solve_small(qr_small(A), jnp.eye(A.shape[0], dtype=A.dtype))
 
 
 def matmul_small(
@@ -260,19 +196,18 @@ def largest_eigval_psd(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, ""]:
     a, b = tridiagonal_small(S / jnp.where(scale > 0, scale, 1.0))
     b2, ab, zero = b * b, jnp.abs(b), jnp.zeros(1, S.dtype)
     lo = jnp.max(a)
-    width = jnp.max(a + jnp.concatenate([ab, zero]) + jnp.concatenate([zero, ab])) - lo
+    hi = jnp.max(a + jnp.concatenate([ab, zero]) + jnp.concatenate([zero, ab]))
 
-    # the bracket is [lo, lo + width / 2^k] after k steps: only its lower end is carried
-    # (an unrolled step with two outputs, lo and hi, had XLA evaluate the recurrence twice)
-    for k in range(BISECTIONS):
-        x = lo + width * 0.5 ** (k + 1)
+    for _ in range(BISECTIONS):
+        x = 0.5 * (lo + hi)
         prev, minor = 1.0, x - a[0]
         above = minor > 0
         for i in range(1, a.shape[0]):
             prev, minor = minor, (x - a[i]) * minor - b2[i - 1] * prev
             above = above & (minor > 0)
+        hi = jnp.where(above, x, hi)
         lo = jnp.where(above, lo, x)
-    return scale * (lo + width * 0.5 ** (BISECTIONS + 1))
+    return scale * 0.5 * (lo + hi)
 
 
 def cond_small(J: Float[ArrayLike, "n n"], J_inv=None) -> Float[ArrayLike, ""]:

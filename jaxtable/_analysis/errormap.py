@@ -24,7 +24,7 @@ from .._batch import run_batch
 from .._errors import require_x64
 from .._forward import platform_radius
 from .._kinematics import within_limits
-from .._linalg import cond_small, inv_qr_small, matmul_small
+from .._linalg import cond_small, inv_small, matmul_small
 from .._rotation import ARCSEC_PER_RAD, euler_rate_inverse, euler_rate_matrix
 from .._table import Table
 from .sensitivities import BUDGET_WRT, budget_jacobians_one
@@ -43,7 +43,7 @@ def budget_one(table: Table, sigmas: tuple, pose, with_cond: bool = True):
     _, K, gains, spiral = budget_jacobians_one(table, pose)
     # δ(t, ω) = −K⁻¹ D δθ with D block-diagonal by leg: column (i, c) of the pose error is
     # −K⁻¹[:, i] · d_ic, so σ² = σ_src² Σ_i (K⁻¹[:, i])² Σ_c d_ic² (= gains[i, param]).
-    Kinv = inv_qr_small(K)  # plain jnp (see _linalg on LAPACK deadlocks); QR: run time
+    Kinv = inv_small(K)  # plain jnp: see _linalg on LAPACK deadlocks
     column = [BUDGET_WRT.index(PARAMETER[src]) for src in SOURCES]
     std = jnp.asarray(sigmas)[:, None] * jnp.sqrt(matmul_small(Kinv**2, gains[:, column])).T
     std = jnp.concatenate([std, jnp.sqrt(jnp.sum(std**2, axis=0))[None]])
