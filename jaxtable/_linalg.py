@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
 
-def computed_once(x, one_from=None):
+def computed_once(x):
     """`x` unchanged (x / 1, exactly), as a division, so that XLA computes it once per kernel.
 
     XLA's fusion prices arithmetic as cheap and recomputes a cheap value inside every fusion
@@ -21,10 +21,10 @@ def computed_once(x, one_from=None):
     where needed. For values that many later expressions share: the Householder
     projections of `tridiagonal_small` (recomputed each about five times), the error map's
     Jacobian rows. Not for kernels that fuse into one loop anyway (the attitude's sines and
-    cosines in the pose -> command map: 5 % slower that way). The divisor 1 is computed
-    from `one_from` (default `x`), so it is not a constant XLA could fold away; pass a value
-    that is not a tangent where `x` must stay linear (for reverse mode)."""
-    return x / (1.0 + 0.0 * (x if one_from is None else one_from))
+    cosines in the pose -> command map: 5 % slower that way). The divisor is computed from
+    `x`, so it is not a constant XLA could fold away (and the result is not linear in `x`:
+    not for a value reverse mode must transpose)."""
+    return x / (1.0 + 0.0 * x)
 
 
 def lu_small(A: Float[ArrayLike, "n n"]):

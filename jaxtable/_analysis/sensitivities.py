@@ -122,8 +122,8 @@ def budget_jacobians_one(table: Table, pose: Float[ArrayLike, "6"]):
     spiral = table.signed_lead * turns
     s = L - table.zero_lengths - spiral
     c = table.signed_lead / (2 * jnp.pi)
-    # K's entries each written once: else every fusion that reads K (its inverse reads it
-    # entry by entry) recomputes the leg and twist geometry behind them
+    # K's entries each written once: else every fusion that reads K (the budget's inverse,
+    # the condition number's products) recomputes the leg and twist geometry behind them
     dt = tuple(computed_once(l[k] / L - c * g[k]) for k in range(3))
     m1, m2 = _cross(ra, dt), _cross(j, h)
     dw = tuple(computed_once(m1[k] - c * m2[k]) for k in range(3))
