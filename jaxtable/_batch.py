@@ -8,9 +8,10 @@ device of this process and over every process of a `jax.distributed` job.
   `chunk` rows, so peak memory is one chunk's;
 - concrete input: a loop over equal chunks of at most about `chunk` rows (the next chunk is
   dispatched before the previous one is copied out), each chunk one call of a compiled
-  `vmap`. The chunk size is rounded up (`chunk_rows`: a power of two for a small batch, a
-  multiple of chunk/16 otherwise; the last chunk is padded by repeating its last row), so
-  batches of different sizes share a few compiled shapes; a chunk
+  `vmap`. The chunk size is rounded up (`chunk_rows`: a power of two of at least
+  `SMALL_BATCH` rows for a small batch, a multiple of chunk/16 otherwise; the last chunk is
+  padded by repeating its last row), so batches of different sizes share a few compiled
+  shapes; a chunk
   runs multi-threaded, which `lax.map` (an in-place update per step) does not. Chunks under
   `_jit.LARGE_BATCH` rows compile quick (XLA's classic emitters: their compile time is the
   wait), larger ones with XLA's default emitters (they stream: run time is the wait);
@@ -37,6 +38,11 @@ from ._errors import is_concrete
 from ._jit import LARGE_BATCH, jit
 
 DEFAULT_CHUNK = 1 << 16
+# the fewest rows a compiled single-chunk batch has (`chunk_rows`): every batch of up to 256
+# rows runs one program. A kernel's compilation takes seconds; 256 rows of a per-pose kernel
+# run in about a millisecond (forward kinematics ~4 µs a pose on 2 cores), so the padding
+# costs nothing a user waits for, and each distinct small size would cost a compilation
+SMALL_BATCH = 256
 
 
 def map_batch(fn, *xs, chunk: int = DEFAULT_CHUNK):
@@ -104,31 +110,32 @@ def _slice_rows(tree, start: int, stop: int):
     return jax.tree.map(lambda x: x[start:stop], tree)
 
 
-def chunk_rows(n: int, chunk: int, n_dev: int = 1) -> int:
+def chunk_rows(n: int, chunk: int, n_dev: int = 1, min_rows: int = SMALL_BATCH) -> int:
     """Rows of each compiled chunk for a batch of `n` rows (a multiple of `n_dev`), so that
     batches of different sizes share a few compiled shapes:
 
     - several chunks: equal chunks (little padding), their size rounded up to a multiple of
       chunk/16;
-    - one chunk under `_jit.LARGE_BATCH` rows: the next power of two (at least 8, at most
-      `chunk`): such batches are compile-bound (a forward solve of 1000 poses runs in
-      milliseconds after seconds of compilation), so 150, 200 and 240 rows share one
-      program and the padding costs microseconds;
+    - one chunk under `_jit.LARGE_BATCH` rows: the next power of two, at least `min_rows`
+      (`SMALL_BATCH` unless a caller's rows are costly), at most `chunk`: such batches are
+      compile-bound (a forward solve of 1000 poses runs in milliseconds after seconds of
+      compilation), so 1, 150 and 200 rows share one program and the padding costs a
+      millisecond;
     - one larger chunk: a multiple of chunk/16 (run time is the wait there).
     """
     n_chunks = math.ceil(n / chunk)
     quantum = n_dev * max(1, math.ceil(chunk / 16 / n_dev))
     if n_chunks == 1 and n < LARGE_BATCH:
-        bucket = min(max(8, 1 << (n - 1).bit_length()), max(chunk, n))
+        bucket = min(max(min_rows, 1 << (n - 1).bit_length()), max(chunk, n))
         return n_dev * math.ceil(bucket / n_dev)
     return quantum * math.ceil(math.ceil(n / n_chunks) / quantum)
 
 
-def _run_local(fn, shared, batched, n: int, chunk: int, progress=None):
+def _run_local(fn, shared, batched, n: int, chunk: int, progress=None, min_rows=SMALL_BATCH):
     """All rows of `batched` (numpy leaves, n rows) on this process's devices, in chunks."""
     mesh = batch_mesh()
     n_dev = 1 if mesh is None else mesh.size
-    size = chunk_rows(n, chunk, n_dev)
+    size = chunk_rows(n, chunk, n_dev, min_rows)
     if mesh is not None:
         rows = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
         everywhere = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
@@ -170,7 +177,9 @@ def _run_local(fn, shared, batched, n: int, chunk: int, progress=None):
     return jax.tree.unflatten(treedef, out)
 
 
-def run_batch(fn, shared, batched, *, chunk: int = DEFAULT_CHUNK, progress=None):
+def run_batch(
+    fn, shared, batched, *, chunk: int = DEFAULT_CHUNK, progress=None, min_rows=SMALL_BATCH
+):
     """`jax.vmap(lambda row: fn(shared, row))(batched)`, chunked and spread over devices and
     processes (see the module docstring).
 
@@ -181,6 +190,8 @@ def run_batch(fn, shared, batched, *, chunk: int = DEFAULT_CHUNK, progress=None)
     batch filled one chunk exactly (`chunk_rows`) on one device or the input was traced,
     else numpy arrays.
     `progress`: a description string (or True) for a progress bar over the rows.
+    `min_rows`: the fewest rows of a compiled small batch (`chunk_rows`); lower it where a
+    row is costly (a Monte Carlo row is a forward solve of every pose).
     """
     if not is_concrete(shared, batched):
         return _chunked(fn, shared, batched, chunk)
@@ -190,13 +201,13 @@ def run_batch(fn, shared, batched, *, chunk: int = DEFAULT_CHUNK, progress=None)
         return _vmapped_quick(fn, shared, batched)
     n_proc = jax.process_count()
     if n_proc == 1:
-        return _run_local(fn, shared, batched, n, chunk, progress)
+        return _run_local(fn, shared, batched, n, chunk, progress, min_rows)
     from jax.experimental import multihost_utils
 
     per = math.ceil(n / n_proc)
     start = jax.process_index() * per
     mine = _pad_rows(_slice_rows(batched, min(start, n - 1), min(start + per, n)), per)
-    local = _run_local(fn, shared, mine, per, chunk, progress)
+    local = _run_local(fn, shared, mine, per, chunk, progress, min_rows)
     local = jax.tree.map(np.asarray, local)
     gathered = multihost_utils.process_allgather(local, tiled=True)
     return jax.tree.map(lambda x: np.asarray(x)[:n], gathered)

@@ -32,15 +32,18 @@ def test_run_batch_chunks_pad_and_trace_give_the_plain_vmap():
 
 
 def test_small_batches_share_a_compiled_size_and_lose_no_row():
-    """Single-chunk batches are padded to a power of two (at least 8, at most the chunk) under
-    LARGE_BATCH rows, to a multiple of chunk/16 above; several chunks are equal multiples of
-    chunk/16. Sizes by hand; 150 and 200 rows then run one compiled program, every row
-    equal to the plain vmap."""
+    """Single-chunk batches are padded to a power of two (at least SMALL_BATCH = 256 rows or
+    a caller's `min_rows`, at most the chunk) under LARGE_BATCH rows, to a multiple of
+    chunk/16 above; several chunks are equal multiples of chunk/16. Sizes by hand; 1, 150
+    and 200 rows then run one compiled program, every row equal to the plain vmap."""
     import jax.monitoring
 
-    from jaxtable._batch import chunk_rows
+    from jaxtable._batch import SMALL_BATCH, chunk_rows
 
-    assert [chunk_rows(n, 1 << 16) for n in (1, 8, 9, 150, 200, 256, 257, 4095)] == [
+    assert SMALL_BATCH == 256
+    sizes = (1, 8, 9, 150, 200, 256, 257, 4095)
+    assert [chunk_rows(n, 1 << 16) for n in sizes] == [256] * 6 + [512, 4096]
+    assert [chunk_rows(n, 1 << 16, min_rows=8) for n in sizes] == [
         8,
         8,
         16,
@@ -55,6 +58,7 @@ def test_small_batches_share_a_compiled_size_and_lose_no_row():
     assert chunk_rows(100_000, 1 << 16) == 53248  # 2 chunks of 50000 -> 13 x 4096
     assert chunk_rows(23, 5) == 5 and chunk_rows(150, 200, n_dev=4) == 200
     assert chunk_rows(3, 6, n_dev=4) == 8  # a multiple of the device count
+    assert chunk_rows(3, 1 << 16, n_dev=3, min_rows=8) == 9
 
     compiles = []
 
@@ -67,7 +71,7 @@ def test_small_batches_share_a_compiled_size_and_lose_no_row():
 
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
-        for n in (150, 200):
+        for n in (1, 150, 200):
             x = np.random.default_rng(n).normal(size=(n, 3))
             got = np.asarray(run_batch(odd, jnp.asarray(1.5), x))
             assert got.shape == (n, 3)

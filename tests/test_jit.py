@@ -101,7 +101,7 @@ def test_small_batches_compile_quick_and_large_ones_keep_the_defaults(table, mon
     poses[:, 2] = np.linspace(-20, 20, len(poses))
     small = jt.actuator_command(table, poses[:100])
     large = jt.actuator_command(table, poses)
-    assert used[0] == ("_vmapped_quick", 128)  # 100 rows padded to a power of two (chunk_rows)
+    assert used[0] == ("_vmapped_quick", 256)  # 100 rows padded to SMALL_BATCH (chunk_rows)
     assert {name for name, _ in used[1:]} == {"_vmapped"}
     assert all(rows >= _jit.LARGE_BATCH for _, rows in used[1:])
     # the two programs agree (to rounding: different code generation)

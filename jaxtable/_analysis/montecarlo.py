@@ -69,7 +69,10 @@ def monte_carlo(
     s = actuator_command(table, poses, effects=budget_effects(table), check=False)
     s = s - table.zero_lengths
     chunk = max(1, (1 << 16) // poses.shape[0])
-    err, result = run_batch(_mc_sample, (s, poses, options), (tables, effects), chunk=chunk)
+    # a row is a forward solve of every pose: pad small sample counts to 8, not SMALL_BATCH
+    err, result = run_batch(
+        _mc_sample, (s, poses, options), (tables, effects), chunk=chunk, min_rows=8
+    )
     ok = np.asarray(result == RESULTS.successful)
     err = np.asarray(err)
     if allow_failures:
