@@ -188,11 +188,19 @@ def test_fit_jacobian_equals_central_differences(table):
     derivative) = central differences of the weighted residual, in every kind of parameter:
     joints, zero lengths, the spiral lead, backlash and compliance (whose leg forces solve
     the statics at each pose; a 20 kg payload in session 2) and the frames of two tracker
-    sessions, at a point where every parameter has moved from its start."""
+    sessions, at a point where every parameter has moved from its start. Evaluated 7 stops
+    at a time (the 24 stops as 7 + 7 + 7 + 3, padded), the same Jacobian, residual and
+    solve flags."""
     import jax.numpy as jnp
     from jax.flatten_util import ravel_pytree
 
-    from jaxtable._calibration.fit import _scales, jacobian, residual_jit, setup
+    from jaxtable._calibration.fit import (
+        _scales,
+        jacobian,
+        jacobian_in_chunks,
+        residual_jit,
+        setup,
+    )
     from jaxtable._effects import Backlash, Compliance, Spiral
     from jaxtable._params import GEOMETRY
 
@@ -240,6 +248,11 @@ def test_fit_jacobian_equals_central_differences(table):
     err = np.linalg.norm(np.asarray(J) - Jfd, axis=0) / np.linalg.norm(Jfd, axis=0)
     assert err.max() < 1e-6, (err.max(), st.names[int(np.argmax(err))])
     assert {"spiral.lead[1]", "backlash.w[1]", "compliance.flex[1]"} <= set(st.names)
+    Jc, rc, solved_c = jacobian_in_chunks(st.problem, st.layout, unravel(jnp.asarray(f)), rows=7)
+    assert Jc.shape == np.shape(J) and len(solved_c) == 24
+    np.testing.assert_allclose(Jc, np.asarray(J), rtol=1e-12, atol=1e-12 * np.abs(J).max())
+    np.testing.assert_allclose(rc, res(f), rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(solved_c, np.asarray(solved))
 
 
 def test_truncated_step_is_the_truncated_pseudo_inverse():

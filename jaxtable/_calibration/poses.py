@@ -38,7 +38,7 @@ from .._forward import platform_radius
 from .._jit import jit
 from .._table import Table
 from .._threads import one_blas_thread
-from .fit import Layout, jacobian, make_problem, setup, zero_steps
+from .fit import Layout, jacobian_in_chunks, make_problem, setup, zero_steps
 from .instruments import Instrument, observe
 from .measurements import Measurements
 from .simulate import plan_random
@@ -152,7 +152,7 @@ def pose_jacobians(
         theta["frame"] = jnp.zeros_like(theta["frame"])
     if "target" in theta:
         theta["target"] = jnp.asarray(tgt[list(st.layout.target_dofs)])
-    J = np.asarray(jacobian(st.problem, st.layout, theta)[0])
+    J = jacobian_in_chunks(st.problem, st.layout, theta)[0]
     J = J.reshape(len(poses), 6, -1)[:, mask, :]
     nuisance = np.array([n.startswith(("frame[", "target.")) for n in st.names])
     return PoseJacobians(
@@ -437,7 +437,7 @@ def pose_sensitivities(jac: PoseJacobians, poses) -> np.ndarray:
     problem = make_problem(jac.nominal, data, jac.effects, jac.bases, jac.compensated)
     layout = Layout(tuple(jac.layout.free), (), (), 1, jac.layout.gauge)
     theta = zero_steps(jac.nominal, jac.effects, layout.free, jac.bases)
-    S = np.asarray(jacobian(problem, layout, theta)[0]).reshape(len(poses), 6, -1)
+    S = jacobian_in_chunks(problem, layout, theta)[0].reshape(len(poses), 6, -1)
     out = np.zeros((len(poses), 6, len(jac.names)))
     out[:, :, ~jac.nuisance] = S
     return out

@@ -420,7 +420,7 @@ def discrimination_plan(
     grows with temperature, or one that changes between sessions) is not separated by
     poses: the result says so (`separates`)."""
     from .._api import actuator_command, reachable
-    from .._calibration.fit import jacobian
+    from .._calibration.fit import jacobian_in_chunks
     from .._calibration.poses import _greedy_exchange
     from .._context import Context
 
@@ -480,7 +480,7 @@ def discrimination_plan(
         ),
     )
     measured = np.flatnonzero(wcol > 0)
-    Jc, _, solved = jacobian(problem, st.layout, cal.theta)
+    Jc, _, solved = jacobian_in_chunks(problem, st.layout, cal.theta)
     keep = np.flatnonzero(np.asarray(solved))  # poses the forward solve reaches
     poses = poses[keep]
     G = (np.asarray(Jc).reshape(m, 6, -1)[keep][:, measured][:, :, cols] / scale).astype(float)
