@@ -26,7 +26,7 @@ from jax.flatten_util import ravel_pytree
 
 from .. import _params as params
 from .._api import actuator_command
-from .._batch import SMALL_BATCH
+from .._batch import SMALL_BATCH, _pad_rows, _slice_rows
 from .._context import Context, directions, run_time
 from .._effects import resolve_effects
 from .._errors import POSE_COLUMNS
@@ -213,24 +213,21 @@ def jacobian(problem: Problem, layout: Layout, theta):
     return J, r, solved
 
 
-def _take_rows(problem: Problem, idx: np.ndarray) -> Problem:
-    """`problem` with its per-stop arrays (`_rows`) taken at the stops `idx` (int array), in
-    numpy (indexing jax arrays eagerly compiles a gather for every shape)."""
-    return eqx.tree_at(_rows, problem, jax.tree.map(lambda x: np.asarray(x)[idx], _rows(problem)))
-
-
 def jacobian_in_chunks(problem: Problem, layout: Layout, theta, rows: int = SMALL_BATCH):
     """`jacobian` (J (N·6, P), residual (N·6,), solved (N,), numpy) evaluated `rows` stops
-    at a time, the last chunk padded by repeating its last stop: one compiled program
-    whatever the number of stops. For candidate poses (pose selection, the discrimination
-    plan), whose number changes from call to call (the reachable ones of a random draw);
-    compiling the Jacobian takes seconds, evaluating 256 stops milliseconds."""
+    at a time, the last chunk padded by repeating its last stop (`run_batch`'s padding): one
+    compiled program whatever the number of stops. For candidate poses (pose selection, the
+    discrimination plan), whose number changes from call to call (the reachable ones of a
+    random draw); compiling the Jacobian takes seconds, evaluating 256 stops milliseconds.
+    The per-stop arrays are sliced in numpy (indexing jax arrays eagerly compiles a gather
+    for every shape)."""
     n = problem.s.shape[0]
+    per_stop = jax.tree.map(np.asarray, _rows(problem))
     parts = []
     for start in range(0, n, rows):  # chunks of a large batch, not a loop over poses
         k = min(rows, n - start)
-        idx = np.minimum(np.arange(start, start + rows), n - 1)
-        J, r, solved = jacobian(_take_rows(problem, idx), layout, theta)
+        chunk = _pad_rows(_slice_rows(per_stop, start, start + rows), rows)
+        J, r, solved = jacobian(eqx.tree_at(_rows, problem, chunk), layout, theta)
         parts.append((np.asarray(J)[: 6 * k], np.asarray(r)[: 6 * k], np.asarray(solved)[:k]))
     return tuple(np.concatenate(p) for p in zip(*parts))
 
