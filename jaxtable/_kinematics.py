@@ -10,6 +10,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._errors import is_concrete
+from ._linalg import computed_once
 from ._rotation import rotation_entries, rotation_matrix
 from ._table import Table
 
@@ -80,23 +81,30 @@ def _twist_sin_cos(table: Table, pose: Float[ArrayLike, "6"]):
     s = |l| (n×j)·l and c = (n·j)|l|² − (n·l)(j·l): polynomial in l except one sqrt.
     """
     R = rotation_entries(pose[3:])
-    l = _legs(table, pose, R)
+    return _twist_sin_cos_of(
+        table, _legs(table, pose, R), _rotate(R, _columns(table.platform_axes))
+    )
+
+
+def _twist_sin_cos_of(table: Table, l: Vec3, j: Vec3):
+    """`_twist_sin_cos` from the leg vectors `l` and the platform axes `j` (base frame)."""
     n = _columns(table.base_axes)
-    j = _rotate(R, _columns(table.platform_axes))
     ll = _dot(l, l)
     s = jnp.sqrt(ll) * _dot(_cross(n, j), l)
     c = _dot(n, j) * ll - _dot(n, l) * _dot(j, l)
     return s, c
 
 
-def twist_gradients(table: Table, l: Vec3, j: Vec3) -> tuple[Vec3, Vec3]:
+def twist_gradients(table: Table, l: Vec3, j: Vec3, once: bool = False) -> tuple[Vec3, Vec3]:
     """Gradients of the twist angle β of `_twist_sin_cos` at leg vectors `l` and platform
     axes `j` (base frame, components (6,) each): (∂β/∂l, ∂β/∂j), rad/mm and rad per unit.
 
     With w = n×j, L = |l|: S = L w·l, C = (n·j)L² − (n·l)(j·l), dβ = (C dS − S dC)/(S² + C²),
     ∇_l S = (w·l/L) l + L w, ∇_l C = 2(n·j) l − (j·l) n − (n·l) j, ∇_j S = L (l×n),
     ∇_j C = L² n − (n·l) l. Closed form for the first-order budget (no autodiff tangents);
-    the tests check it against `jax.jacfwd` of `rod_rotation`."""
+    the tests check it against `jax.jacfwd` of `rod_rotation`. `once=True`: the per-leg
+    scalars the six components share are each computed once per kernel
+    (`_linalg.computed_once`), not again in every fusion that reads a component."""
     n = _columns(table.base_axes)
     w = _cross(n, j)
     ll = _dot(l, l)
@@ -105,12 +113,15 @@ def twist_gradients(table: Table, l: Vec3, j: Vec3) -> tuple[Vec3, Vec3]:
     S = L * wl
     C = nj * ll - nl * jl
     inv = 1.0 / (S * S + C * C)
+    S, C = S * inv, C * inv
+    if once:
+        S, C, L, wl, nj, nl, jl, ll = (computed_once(x) for x in (S, C, L, wl, nj, nl, jl, ll))
     ln = _cross(l, n)
     grad_l = tuple(
-        (C * (wl / L * l[k] + L * w[k]) - S * (2 * nj * l[k] - jl * n[k] - nl * j[k])) * inv
+        C * (wl / L * l[k] + L * w[k]) - S * (2 * nj * l[k] - jl * n[k] - nl * j[k])
         for k in range(3)
     )
-    grad_j = tuple((C * L * ln[k] - S * (ll * n[k] - nl * l[k])) * inv for k in range(3))
+    grad_j = tuple(C * L * ln[k] - S * (ll * n[k] - nl * l[k]) for k in range(3))
     return grad_l, grad_j
 
 
@@ -122,7 +133,11 @@ def rod_rotation(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, 
     Computed as one atan2 of the increment β(q) − β(home), so it never wraps at ±180° and has
     finite gradients everywhere except where a joint axis is parallel to its leg.
     """
-    s, c = _twist_sin_cos(table, pose)
+    return twist_from_home(table, *_twist_sin_cos(table, pose))
+
+
+def twist_from_home(table: Table, s, c):
+    """`rod_rotation` from the twist's (s, c) (`_twist_sin_cos`) at the pose, rad, (6,)."""
     s0, c0 = _twist_sin_cos(table, HOME)
     r0 = jnp.sqrt(s0 * s0 + c0 * c0)
     s0, c0 = s0 / r0, c0 / r0
@@ -193,11 +208,11 @@ def _angle(a: Vec3, b: Vec3) -> Array:
     return jnp.arctan2(jnp.sqrt(_dot(c, c)), _dot(a, b))
 
 
-def _legs_from_home(table: Table, pose: Float[ArrayLike, "6"]):
+def _legs_from_home(table: Table, pose: Float[ArrayLike, "6"], once: bool = False):
     """(|l_i|, u_i, Rᵀu_i, u_i(0)): leg lengths (6,) mm and unit leg directions, each a
     tuple of three (6,) components: in the base frame now, in the platform frame now, and
-    at home (the U-joints' neutral direction)."""
-    R = rotation_entries(pose[3:])
+    at home (the U-joints' neutral direction). `once`: as for `rotation_entries`."""
+    R = rotation_entries(pose[3:], once)
     l = _legs(table, pose, R)
     L = jnp.sqrt(_dot(l, l))
     u = tuple(x / L for x in l)
@@ -224,12 +239,12 @@ def joint_bend(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "2
     return jnp.stack(_lengths_and_bends(table, pose)[1:])
 
 
-def within_limits(table: Table, pose: Float[ArrayLike, "6"]) -> Array:
+def within_limits(table: Table, pose: Float[ArrayLike, "6"], once: bool = False) -> Array:
     """True when every leg length |l_i| is inside the stroke and every U-joint bend is within
-    the table's joint angle limit (bool scalar)."""
+    the table's joint angle limit (bool scalar). `once`: as for `rotation_entries`."""
     # bend ≤ limit compared as cosines, cos(bend) = u·u0 ≥ cos(limit) (no arctangent: the
     # error map's kernel checks every pose)
-    L, u, up, u0 = _legs_from_home(table, pose)
+    L, u, up, u0 = _legs_from_home(table, pose, once)
     limit = table.joint_angle_limit
     c = jnp.cos(jnp.minimum(limit, jnp.pi))
     bend_ok = (limit >= jnp.pi) | ((_dot(u, u0) >= c) & (_dot(up, u0) >= c))

@@ -5,19 +5,29 @@ import math
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from ._linalg import computed_once
+
 ARCSEC_PER_RAD = math.degrees(1.0) * 3600.0
 
 
-def rotation_entries(angles: Float[ArrayLike, "3"]) -> tuple[tuple[Array, Array, Array], ...]:
+def rotation_entries(
+    angles: Float[ArrayLike, "3"], once: bool = False
+) -> tuple[tuple[Array, Array, Array], ...]:
     """The nine entries of `rotation_matrix` as a row-major tuple of scalar tuples.
 
     Kept unstacked so that under `vmap` each entry is one elementwise expression fused into
     its consumer (a stacked matrix becomes separate fusions that each recompute the sines).
+    `once=True`: the six sines and cosines are each computed once per kernel
+    (`_linalg.computed_once`), for kernels whose many fusions read R (the error map's, where
+    XLA otherwise recomputed them in ~10 fusions); not for the pose -> command map, which
+    fuses into one loop anyway.
     """
     phi, theta, psi = angles[0], angles[1], angles[2]
     cf, sf = jnp.cos(phi), jnp.sin(phi)
     ct, st = jnp.cos(theta), jnp.sin(theta)
     cp, sp = jnp.cos(psi), jnp.sin(psi)
+    if once:
+        cf, sf, ct, st, cp, sp = (computed_once(v) for v in (cf, sf, ct, st, cp, sp))
     return (
         (cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf),
         (sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf),

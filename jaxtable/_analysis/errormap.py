@@ -59,7 +59,7 @@ def budget_one(table: Table, sigmas: tuple, pose, with_cond: bool = True):
         cond = cond_small(J, J_inv)
     else:
         cond = jnp.asarray(jnp.nan)
-    reach = within_limits(table, pose)
+    reach = within_limits(table, pose, once=True)  # shares the budget's sines
     return std, bias, cond, reach
 
 

@@ -27,8 +27,9 @@ from .._kinematics import (
     _dot,
     _legs,
     _rotate,
+    _twist_sin_cos_of,
     leg_lines,
-    rod_rotation,
+    twist_from_home,
     twist_gradients,
 )
 from .._linalg import computed_once, solve_small
@@ -110,15 +111,17 @@ def budget_jacobians_one(table: Table, pose: Float[ArrayLike, "6"]):
     parameter is all the budget needs. The same derivatives as `jacobians_one` on
     `budget_effects` (the tests compare them), without autodiff tangents: the error map's
     kernel runs several times faster."""
-    R = rotation_entries(pose[3:])
-    l = _legs(table, pose, R)
+    # what many fusions read is computed once (`computed_once`): XLA would otherwise
+    # recompute the sines, the legs and the twist geometry in each fusion that reads them
+    R = rotation_entries(pose[3:], once=True)
+    l = tuple(computed_once(x) for x in _legs(table, pose, R))
     ra = _rotate(R, _columns(table.platform_joints))
-    j = _rotate(R, _columns(table.platform_axes))
+    j = tuple(computed_once(x) for x in _rotate(R, _columns(table.platform_axes)))
     l0 = _legs(table, HOME, rotation_entries(HOME[3:]))
-    g, h = twist_gradients(table, l, j)
+    g, h = twist_gradients(table, l, j, once=True)
     g0, _ = twist_gradients(table, l0, _columns(table.platform_axes))
     L = jnp.sqrt(_dot(l, l))
-    turns = rod_rotation(table, pose) / (2 * jnp.pi)
+    turns = twist_from_home(table, *_twist_sin_cos_of(table, l, j)) / (2 * jnp.pi)
     spiral = table.signed_lead * turns
     s = L - table.zero_lengths - spiral
     c = table.signed_lead / (2 * jnp.pi)
