@@ -26,6 +26,8 @@ import equinox as eqx
 import jax
 from jax._src import core as jax_core  # trace_state_clean: is any trace under way
 
+from . import _tracecache
+
 ENV = "JAXTABLE_QUICK_COMPILE"
 QUICK = {"xla_cpu_use_fusion_emitters": False}
 LARGE_BATCH = 4096  # rows from which a batch kernel keeps XLA's default emitters
@@ -62,9 +64,10 @@ def _inside_a_trace(args, kwargs) -> bool:
 
 def jit(fun):
     """`eqx.filter_jit(fun)` compiled with `compiler_options()`, decided at each top-level
-    call (so `$JAXTABLE_QUICK_COMPILE` may change between calls). Called inside another
-    traced function it is a plain `eqx.filter_jit` (JAX accepts compiler options on the
-    outermost program only)."""
+    call (so `$JAXTABLE_QUICK_COMPILE` may change between calls); at the top level through
+    the traced programs stored beside the compilation cache where it is on
+    (`_tracecache.call`). Called inside another traced function it is a plain
+    `eqx.filter_jit` (JAX accepts compiler options on the outermost program only)."""
     compiled = {}
 
     def get(options: dict):
@@ -76,7 +79,9 @@ def jit(fun):
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        options = {} if _inside_a_trace(args, kwargs) else compiler_options()
-        return get(options)(*args, **kwargs)
+        if _inside_a_trace(args, kwargs):
+            return get({})(*args, **kwargs)
+        options = compiler_options()
+        return _tracecache.call(fun, options, args, kwargs, lambda: get(options)(*args, **kwargs))
 
     return call

@@ -246,6 +246,26 @@ def test_gradient_optimum_matches_a_brute_force_grid(design):
     assert r.value > r.start_value
 
 
+def test_reverse_mode_gradient_reaches_the_forward_mode_optimum(design, monkeypatch):
+    # few variables take the loss's gradient in forward mode, many in reverse mode
+    # (`gradient_mode`): both are the same gradient, so BFGS takes the same path
+    from jaxtable._design import optimize
+
+    assert optimize.gradient_mode(2) == "fwd"
+    assert optimize.gradient_mode(optimize.FORWARD_UP_TO + 1) == "bwd"
+    poses = jt.design_poses(None, n_sweep=5, n_random=16, box=2)
+    names = ["home_height", "platform_radius"]
+    bounds = {"home_height": (400.0, 900.0), "platform_radius": (200.0, 520.0)}
+    fwd = jt.optimize_design(design, names, "gci", workspace=poses, bounds=bounds, starts=2)
+    monkeypatch.setattr(optimize, "FORWARD_UP_TO", 0)
+    assert optimize.gradient_mode(2) == "bwd"
+    bwd = jt.optimize_design(design, names, "gci", workspace=poses, bounds=bounds, starts=2)
+    assert bwd.value == pytest.approx(fwd.value, rel=1e-9)
+    for n in names:
+        assert bwd.variables[n][1] == pytest.approx(fwd.variables[n][1], rel=1e-6)
+    assert fwd.value > fwd.start_value + 0.01  # it moved: the gradient did something
+
+
 def test_discrete_enumeration_matches_exhaustive_search(design):
     poses = jt.design_poses(None, n_sweep=5, n_random=16, box=2)
     r = jt.optimize_design(design, ["hand"], "max_spiral_error_mm", workspace=poses)

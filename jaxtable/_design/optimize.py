@@ -48,7 +48,7 @@ the worst cases sharpen, so the last round's safety margin n^(1/p) is small."""
 FORWARD_UP_TO = 8
 """Up to this many continuous variables the loss's gradient is taken in forward mode (cost
 ~ one criteria evaluation per variable), beyond it in reverse mode (~ three, whatever the
-number): see `_round`."""
+number): see `gradient_mode`."""
 FEASIBLE = 1e-6  # relative violation below which a constraint counts as met
 HANDS = np.array(list(itertools.product([1.0, -1.0], repeat=6)))
 
@@ -229,14 +229,11 @@ _criteria_once = jax.jit(criteria)
 
 
 @jit
-def _round(loss: _Loss, z, mu, p, args):
+def _round(loss: _Loss, z, mu, p, args, mode: str):
     """One penalty round: BFGS on `loss` from every row of z (vmapped with the rows of
-    `args`); `mu` and `p` traced, so every round runs one program."""
+    `args`); `mu` and `p` traced, so every round runs one program. `mode`: optimistix's
+    `autodiff_mode` for the loss's gradient, "fwd" or "bwd" (`gradient_mode`)."""
     solver = optx.BFGS(rtol=1e-6, atol=1e-8)
-    # the loss's gradient in forward mode for a few variables: one tangent per variable
-    # through the criteria, no transposed program (a two-variable optimisation with and
-    # without a constraint: XLA compile 33 -> 26 s); reverse mode beyond FORWARD_UP_TO
-    mode = "fwd" if z.shape[-1] <= FORWARD_UP_TO else "bwd"
 
     def one(z, a):
         sol = optx.minimise(
@@ -253,12 +250,22 @@ def _round(loss: _Loss, z, mu, p, args):
     return jax.vmap(one)(z, args)
 
 
+def gradient_mode(n_variables: int) -> str:
+    """How the loss's gradient is taken: forward mode ("fwd") up to `FORWARD_UP_TO`
+    continuous variables, one tangent per variable through the criteria and no transposed
+    program (a two-variable optimisation with and without a constraint: XLA compile 33 ->
+    22-26 s); reverse mode ("bwd") beyond, whose cost does not grow with the number."""
+    return "fwd" if n_variables <= FORWARD_UP_TO else "bwd"
+
+
 def _solve_batch(loss: _Loss, z0, args, smooth, progress=False):
     """Minimise `loss(z, (mu, p, *args))` for every row of z0 / args (vmapped), over ROUNDS,
     warm-started."""
     z = z0
     for k, (mu, factor) in enumerate(ROUNDS):
-        z = _round(loss, z, np.float64(mu), np.float64(smooth * factor), args)
+        z = _round(
+            loss, z, np.float64(mu), np.float64(smooth * factor), args, gradient_mode(z.shape[-1])
+        )
         _say(progress, f"  penalty round {k + 1}/{len(ROUNDS)} done")
     return z
 

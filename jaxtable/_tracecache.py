@@ -1,0 +1,246 @@
+"""Traced programs kept on disk beside the compilation cache, so that a repeat run skips
+tracing as well as compiling.
+
+JAX's persistent compilation cache (`_cache.py`) keeps compiled programs, but a new process
+still traces and lowers every program before it can look the compiled one up: a repeat
+`jaxtable diagnose` spent ~10 s of its ~22 s tracing its shared fit program. `jax.export`
+serialises a traced and lowered program; `call` stores one per program and argument
+signature in `<compilation cache>/traced/` and runs the stored one instead of tracing.
+
+The key is everything tracing depends on: the function (module and name); a fingerprint of
+jaxtable's source files and of the versions of Python and of the libraries that trace
+(jax, jaxlib, equinox, optimistix, lineax, numpy); the backend, the x64 flag and the
+compiler options; and the arguments, split as `eqx.filter_jit` splits them: the shape,
+dtype and weak type of every array, and the pickled bytes of everything else (tables'
+static fields, effect sets, layouts, Python numbers, the pytree structure). A program is
+traced as before, and nothing stored, when the function is not jaxtable's, when the
+static arguments hold a function or class from outside jaxtable and the libraries above
+(its code is not in the fingerprint), when they cannot be pickled, when an array is
+sharded over several devices, or when the program cannot be exported.
+
+On by default wherever the compilation cache is (the command line, the tests, a library
+user's `enable_compilation_cache()`); `$JAXTABLE_TRACE_CACHE=0` turns it off. The
+directory holds at most `MAX_BYTES` (least recently used entries go first) and may be
+deleted at any time.
+"""
+
+import functools
+import hashlib
+import importlib.metadata
+import io
+import os
+import pickle
+import sys
+import types
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import numpy as np
+from jax import export
+
+ENV = "JAXTABLE_TRACE_CACHE"
+MAX_BYTES = 512 << 20
+SUFFIX = ".jaxexport"
+_LIBRARIES = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy")
+_TRUSTED = ("jaxtable", "jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy", "builtins")
+_TRUSTED += ("functools", "collections", "operator", "math", "typing", "enum", "types", "abc")
+
+_MEMORY: dict = {}  # key -> (compiled caller, output structure): one process's programs
+_REFUSED: set = set()  # keys whose program could not be exported
+
+
+def directory() -> Path | None:
+    """Where traced programs are stored: `traced/` in the compilation cache directory, or
+    None (the compilation cache is off, or `$JAXTABLE_TRACE_CACHE` is 0)."""
+    base = jax.config.jax_compilation_cache_dir
+    raw = os.environ.get(ENV, "1").strip()
+    if raw not in ("0", "1"):
+        raise ValueError(f"${ENV} must be 0 (off) or 1 (on), got {raw!r}")
+    return Path(base) / "traced" if base and raw == "1" else None
+
+
+@functools.cache
+def fingerprint() -> str:
+    """SHA-256 of jaxtable's source files and the versions of Python and the libraries."""
+    h = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    for dist in _LIBRARIES:
+        try:
+            h.update(f"{dist}={importlib.metadata.version(dist)}\0".encode())
+        except importlib.metadata.PackageNotFoundError:
+            h.update(f"{dist}=?\0".encode())
+    h.update(sys.version.encode())
+    return h.hexdigest()
+
+
+class _Untrusted(Exception):
+    """A function or class from outside the fingerprinted code is in the arguments."""
+
+
+def _trusted(module: str | None) -> bool:
+    return (module or "").split(".")[0] in _TRUSTED
+
+
+class _KeyPickler(pickle.Pickler):
+    """Pickles the static arguments for the key; refuses code from outside `_TRUSTED`
+    (pickle stores a function or class by name, not by code)."""
+
+    def reducer_override(self, obj):
+        if isinstance(obj, (type, types.FunctionType, types.BuiltinFunctionType)):
+            if not _trusted(getattr(obj, "__module__", None)):
+                raise _Untrusted(repr(obj))
+        elif isinstance(obj, functools.partial):
+            if not _trusted(getattr(obj.func, "__module__", None)):
+                raise _Untrusted(repr(obj))
+        return NotImplemented
+
+
+def _static_bytes(obj) -> bytes | None:
+    buffer = io.BytesIO()
+    pickler = _KeyPickler(buffer, protocol=5)
+    # no memo: the bytes must not depend on which equal objects happen to be one object
+    # (a value loaded from a stored program's outputs is a copy where a traced one was
+    # shared, and the next call's key would differ)
+    pickler.fast = True
+    try:
+        pickler.dump(obj)
+    except Exception:  # _Untrusted, or anything pickle cannot store
+        return None
+    return buffer.getvalue()
+
+
+def _slots(leaves) -> list:
+    return [_Slot(i) for i in range(len(leaves))]
+
+
+def _aval(x) -> tuple:
+    return np.shape(x), np.dtype(x.dtype).str, bool(getattr(x, "weak_type", False))
+
+
+def _sharded(x) -> bool:
+    return isinstance(x, jax.Array) and len(x.sharding.device_set) > 1
+
+
+def _key(fun, options: dict, leaves, static_bytes: bytes) -> str:
+    h = hashlib.sha256()
+    parts = (
+        fingerprint(),
+        f"{fun.__module__}.{fun.__qualname__}",
+        jax.default_backend(),
+        str(jax.config.jax_enable_x64),
+        repr(sorted(options.items())),
+        repr([_aval(x) for x in leaves]),
+    )
+    for part in parts:
+        h.update(part.encode() + b"\0")
+    h.update(static_bytes)
+    return h.hexdigest()
+
+
+def _caller(exported, options: dict):
+    return jax.jit(exported.call, **({"compiler_options": options} if options else {}))
+
+
+class _Slot:
+    """Stands for the `index`-th array of a program's outputs in its stored output pytree
+    (a pytree whose structure is pickled as objects: JAX's pickled tree structures do not
+    restore every node type, equinox's enumerations among them)."""
+
+    def __init__(self, index: int):
+        self.index = index
+
+
+def _fill(template, arrays):
+    return jax.tree.map(lambda x: arrays[x.index] if isinstance(x, _Slot) else x, template)
+
+
+def _load(path: Path, options: dict):
+    try:
+        blob, template = pickle.loads(path.read_bytes())
+        exported = export.deserialize(bytearray(blob))
+    except Exception:  # absent, half-written by another process, or from another version
+        return None
+    try:
+        os.utime(path)  # recently used
+    except OSError:
+        pass
+    return _caller(exported, options), template
+
+
+def _export(fun, static, treedef, leaves, options: dict):
+    """Trace and lower `fun` on the arguments' signature; (exported, output template: the
+    output pytree with `_Slot`s where the program returns arrays)."""
+    structure = {}
+
+    def flat(*dynamic):
+        args, kwargs = eqx.combine(jax.tree.unflatten(treedef, dynamic), static)
+        leaves, out_treedef = jax.tree.flatten(fun(*args, **kwargs))
+        arrays = [x for x in leaves if eqx.is_array(x)]
+        slots = iter(range(len(arrays)))
+        template = [_Slot(next(slots)) if eqx.is_array(x) else x for x in leaves]
+        structure["template"] = jax.tree.unflatten(out_treedef, template)
+        return arrays
+
+    specs = [
+        jax.ShapeDtypeStruct(np.shape(x), np.dtype(x.dtype), weak_type=_aval(x)[2]) for x in leaves
+    ]
+    exported = export.export(jax.jit(flat))(*specs)
+    return exported, structure["template"]
+
+
+def _store(folder: Path, path: Path, exported, out) -> None:
+    """Write atomically (another process may read the entry while it is written), then
+    keep the folder under MAX_BYTES by dropping the least recently used entries."""
+    try:
+        data = pickle.dumps((exported.serialize(), out), protocol=5)
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+        entries = sorted(folder.glob(f"*{SUFFIX}"), key=lambda p: p.stat().st_mtime)
+        total = sum(p.stat().st_size for p in entries)
+        for p in entries[:-1]:
+            if total <= MAX_BYTES:
+                break
+            total -= p.stat().st_size
+            p.unlink(missing_ok=True)
+    except Exception:  # a full disk, a read-only cache, an output pickle cannot store
+        pass
+
+
+def call(fun, options: dict, args: tuple, kwargs: dict, plain):
+    """`fun(*args, **kwargs)` through its stored traced program (exported and stored on
+    first use), or `plain()` (the usual compiled call) where the module docstring says."""
+    folder = directory()
+    if folder is None or not _trusted(getattr(fun, "__module__", None)):
+        return plain()
+    dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
+    leaves, treedef = jax.tree.flatten(dynamic)
+    # the key pickles the arguments as objects, each array replaced by its place
+    static_bytes = _static_bytes(eqx.combine(jax.tree.unflatten(treedef, _slots(leaves)), static))
+    if static_bytes is None or any(_sharded(x) for x in leaves):
+        return plain()
+    key = _key(fun, options, leaves, static_bytes)
+    entry = _MEMORY.get(key)
+    if entry is None:
+        if key in _REFUSED:
+            return plain()
+        path = folder / f"{key}{SUFFIX}"
+        entry = _load(path, options)
+        if entry is None:
+            try:
+                exported, out = _export(fun, static, treedef, leaves, options)
+            except Exception:  # not exportable (e.g. a host callback): trace as usual
+                _REFUSED.add(key)
+                return plain()
+            _store(folder, path, exported, out)
+            entry = _caller(exported, options), out
+        _MEMORY[key] = entry
+    run, template = entry
+    # as host arrays: a device array's placement (committed or not) is part of the stored
+    # program's call signature, and a second placement compiled the program again
+    inputs = [x if getattr(x, "weak_type", False) else np.asarray(x) for x in leaves]
+    return _fill(template, run(*inputs))

@@ -1,0 +1,146 @@
+"""Traced programs stored beside the compilation cache (`jaxtable/_tracecache.py`): a stored
+program gives the same results without tracing, the key separates what tracing depends on,
+and code from outside jaxtable, unexportable programs and broken entries are traced as
+before."""
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxtable as jt
+from jaxtable import _jit, _tracecache
+
+TRACE = "/jax/core/compile/jaxpr_trace_duration"
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """An empty store in tmp_path, and no program of this process remembered."""
+    monkeypatch.setattr(_tracecache, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_tracecache, "_MEMORY", {})
+    monkeypatch.setattr(_tracecache, "_REFUSED", set())
+    return tmp_path
+
+
+@pytest.fixture
+def traces():
+    """The names of the functions JAX traces while the test runs."""
+    names = []
+
+    def listen(event, duration, fun_name="?", **_):
+        if event == TRACE:
+            names.append(fun_name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    yield names
+    jax.monitoring.unregister_event_duration_listener(listen)
+
+
+def _entries(folder):
+    return sorted(p.name for p in folder.glob(f"*{_tracecache.SUFFIX}"))
+
+
+def _poses(n, z=0.0):
+    q = np.zeros((n, 6))
+    q[:, 0] = np.linspace(-50.0, 50.0, n)
+    q[:, 2] = z
+    q[:, 5] = np.linspace(-0.05, 0.05, n)
+    return q
+
+
+def test_a_stored_program_gives_the_same_results_without_tracing(table, store, traces, monkeypatch):
+    q = _poses(7)
+    first = jt.actuator_command(table, q)
+    assert len(_entries(store)) == 1  # the command's batch kernel, exported once ...
+    assert "flat" in traces  # ... by tracing it
+    _tracecache._MEMORY.clear()  # as in a new process: only the stored entry is left
+    traces.clear()
+    np.testing.assert_array_equal(jt.actuator_command(table, q), first)
+    assert "flat" not in traces and "_vmap" not in traces  # loaded, not traced
+    traces.clear()  # other values of the same shapes: the same program, nothing traced
+    higher = jt.actuator_command(table, _poses(7, z=10.0))
+    assert traces == [] and len(_entries(store)) == 1
+    assert np.all(higher > first)  # every leg longer 10 mm up
+    monkeypatch.setenv(_tracecache.ENV, "0")  # the plain program gives the same numbers
+    np.testing.assert_allclose(jt.actuator_command(table, q), first, rtol=0, atol=1e-12)
+
+
+def test_the_key_separates_what_tracing_depends_on(table, store, monkeypatch):
+    q = _poses(5)
+    jt.actuator_command(table, q)
+    assert len(_entries(store)) == 1
+    jt.actuator_command(table, q, compensated=False)  # another function in the kernel
+    assert len(_entries(store)) == 2
+    jt.actuator_command(table, np.concatenate([q] * 60))  # 300 rows: another batch size
+    assert len(_entries(store)) == 3
+    monkeypatch.setenv(_jit.ENV, "0")  # other compiler options
+    jt.actuator_command(table, q)
+    assert len(_entries(store)) == 4
+    monkeypatch.setenv(_jit.ENV, "1")
+    before = _entries(store)
+    renamed = dataclasses.replace(table, name="renamed")
+    jt.actuator_command(renamed, q)  # a static field of the table
+    assert len(_entries(store)) == 5
+    # a new jaxtable source (any file) is a new key for every program
+    monkeypatch.setattr(_tracecache, "fingerprint", lambda: "another version")
+    jt.actuator_command(table, q)
+    assert len(_entries(store)) == 6 and set(before) < set(_entries(store))
+
+
+def _outside(x):
+    return jnp.sin(x) * 2.0
+
+
+def test_code_from_outside_jaxtable_is_traced_as_before(table, store):
+    # the function itself, or a function among the static arguments, from a test module:
+    # pickle would store it by name, and its code is not in the fingerprint
+    x = jnp.linspace(0.0, 1.0, 5)
+    np.testing.assert_allclose(_jit.jit(_outside)(x), 2 * np.sin(np.linspace(0, 1, 5)))
+    out = jt._batch.run_batch(lambda shared, q: q[:3] * shared, 2.0, _poses(4))
+    np.testing.assert_allclose(out, 2.0 * _poses(4)[:, :3])
+    assert _entries(store) == []
+
+
+def test_a_program_that_cannot_be_exported_is_traced_as_before(store, monkeypatch):
+    def refuse(*_a, **_k):
+        raise RuntimeError("no export here")
+
+    monkeypatch.setattr(_tracecache, "_export", refuse)
+    f = _jit.jit(jt._rotation.rotation_matrix)
+    np.testing.assert_allclose(f(jnp.zeros(3)), np.eye(3), atol=1e-15)
+    np.testing.assert_allclose(f(jnp.zeros(3)), np.eye(3), atol=1e-15)  # remembered as refused
+    assert _entries(store) == [] and len(_tracecache._REFUSED) == 1
+
+
+def test_a_broken_entry_is_replaced(table, store):
+    q = _poses(6)
+    first = jt.actuator_command(table, q)
+    (entry,) = store.glob(f"*{_tracecache.SUFFIX}")
+    entry.write_bytes(b"half-written by another process")
+    _tracecache._MEMORY.clear()
+    np.testing.assert_array_equal(jt.actuator_command(table, q), first)
+    assert entry.stat().st_size > 1000  # exported and written again
+
+
+def test_the_store_keeps_under_its_size_limit(table, store, monkeypatch):
+    jt.actuator_command(table, _poses(5))
+    (oldest,) = store.glob(f"*{_tracecache.SUFFIX}")
+    monkeypatch.setattr(_tracecache, "MAX_BYTES", oldest.stat().st_size + 10)
+    jt.actuator_command(table, _poses(5), compensated=False)
+    assert not oldest.exists() and len(_entries(store)) == 1  # the newest one stays
+
+
+def test_on_beside_the_compilation_cache_off_by_the_environment(monkeypatch):
+    monkeypatch.delenv(_tracecache.ENV, raising=False)
+    tmp_path = Path(jax.config.jax_compilation_cache_dir)  # the suite's (conftest.py)
+    assert _tracecache.directory() == tmp_path / "traced"
+    monkeypatch.setenv(_tracecache.ENV, "0")
+    assert _tracecache.directory() is None
+    for bad in ("off", "2", "yes"):
+        monkeypatch.setenv(_tracecache.ENV, bad)
+        with pytest.raises(ValueError, match=_tracecache.ENV):
+            _tracecache.directory()
