@@ -13,7 +13,8 @@ jaxtable's source files and of the versions of Python and of the libraries that 
 compiler options; and the arguments, split as `eqx.filter_jit` splits them: the shape,
 dtype and weak type of every array, and the pickled bytes of everything else (tables'
 static fields, effect sets, layouts, Python numbers, the pytree structure). A program is
-traced as before, and nothing stored, when the function is not jaxtable's, when the
+traced as before, and nothing stored, when the function is not one of jaxtable's
+module-level functions (found by its module and name), when the
 static arguments hold a function or class from outside jaxtable and the libraries above
 (its code is not in the fingerprint), when they cannot be pickled, when an array is
 sharded over several devices, or when the program cannot be exported.
@@ -82,6 +83,17 @@ class _Untrusted(Exception):
 
 def _trusted(module: str | None) -> bool:
     return (module or "").split(".")[0] in _TRUSTED
+
+
+def _named(fun) -> bool:
+    """Whether `fun` is jaxtable's module-level function of its name (itself, or what that
+    name's object wraps): only then do its module and name identify its code (a
+    `jax.vmap(f)` carries f's name, and two such wrappers of f could differ)."""
+    module = getattr(fun, "__module__", None) or ""
+    if module.split(".")[0] != "jaxtable":
+        return False
+    obj = getattr(sys.modules.get(module), getattr(fun, "__qualname__", ""), None)
+    return obj is fun or getattr(obj, "__wrapped__", None) is fun
 
 
 class _KeyPickler(pickle.Pickler):
@@ -215,7 +227,7 @@ def call(fun, options: dict, args: tuple, kwargs: dict, plain):
     """`fun(*args, **kwargs)` through its stored traced program (exported and stored on
     first use), or `plain()` (the usual compiled call) where the module docstring says."""
     folder = directory()
-    if folder is None or not _trusted(getattr(fun, "__module__", None)):
+    if folder is None or not _named(fun):
         return plain()
     dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
     leaves, treedef = jax.tree.flatten(dynamic)

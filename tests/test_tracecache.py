@@ -102,6 +102,9 @@ def test_code_from_outside_jaxtable_is_traced_as_before(table, store):
     np.testing.assert_allclose(_jit.jit(_outside)(x), 2 * np.sin(np.linspace(0, 1, 5)))
     out = jt._batch.run_batch(lambda shared, q: q[:3] * shared, 2.0, _poses(4))
     np.testing.assert_allclose(out, 2.0 * _poses(4)[:, :3])
+    # a transformed jaxtable function carries the function's name, not its code
+    R = _jit.jit(jax.vmap(jt._rotation.rotation_matrix))(jnp.zeros((2, 3)))
+    np.testing.assert_allclose(R, np.broadcast_to(np.eye(3), (2, 3, 3)), atol=1e-15)
     assert _entries(store) == []
 
 
@@ -110,7 +113,7 @@ def test_a_program_that_cannot_be_exported_is_traced_as_before(store, monkeypatc
         raise RuntimeError("no export here")
 
     monkeypatch.setattr(_tracecache, "_export", refuse)
-    f = _jit.jit(jt._rotation.rotation_matrix)
+    f = _jit.jit(jt._rotation.rotation_matrix)  # the module's own function: eligible
     np.testing.assert_allclose(f(jnp.zeros(3)), np.eye(3), atol=1e-15)
     np.testing.assert_allclose(f(jnp.zeros(3)), np.eye(3), atol=1e-15)  # remembered as refused
     assert _entries(store) == [] and len(_tracecache._REFUSED) == 1
