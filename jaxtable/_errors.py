@@ -1,5 +1,6 @@
 """Error types raised at the public boundary, and the input checks that raise them."""
 
+import os
 import warnings
 
 import jax
@@ -15,6 +16,15 @@ class TableFileError(ValueError):
 
 class KinematicsError(ValueError):
     """A pose or command is invalid (non-finite, outside the stroke) or a solve failed."""
+
+
+def env_switch(name: str, off: str, on: str) -> bool:
+    """Whether the environment variable `name` (0 or 1, default 1) is on; any other value
+    raises ValueError naming the variable and what 0 (`off`) and 1 (`on`) mean."""
+    raw = os.environ.get(name, "1").strip()
+    if raw not in ("0", "1"):
+        raise ValueError(f"${name} must be 0 ({off}) or 1 ({on}), got {raw!r}")
+    return raw == "1"
 
 
 def require_x64() -> None:

@@ -20,13 +20,13 @@ apply: JAX refuses compiler options on a nested `jit`.
 """
 
 import functools
-import os
 
 import equinox as eqx
 import jax
 from jax._src import core as jax_core  # trace_state_clean: is any trace under way
 
 from . import _tracecache
+from ._errors import env_switch
 
 ENV = "JAXTABLE_QUICK_COMPILE"
 QUICK = {"xla_cpu_use_fusion_emitters": False}
@@ -35,10 +35,7 @@ LARGE_BATCH = 4096  # rows from which a batch kernel keeps XLA's default emitter
 
 def quick_compile_requested() -> bool:
     """Whether `$JAXTABLE_QUICK_COMPILE` asks for quick compilation (default yes)."""
-    raw = os.environ.get(ENV, "1").strip()
-    if raw not in ("0", "1"):
-        raise ValueError(f"${ENV} must be 0 (XLA's defaults) or 1 (quick compile), got {raw!r}")
-    return raw == "1"
+    return env_switch(ENV, "XLA's defaults", "quick compile")
 
 
 @functools.cache

@@ -40,6 +40,8 @@ import jax
 import numpy as np
 from jax import export
 
+from ._errors import env_switch
+
 ENV = "JAXTABLE_TRACE_CACHE"
 MAX_BYTES = 512 << 20
 SUFFIX = ".jaxexport"
@@ -55,10 +57,7 @@ def directory() -> Path | None:
     """Where traced programs are stored: `traced/` in the compilation cache directory, or
     None (the compilation cache is off, or `$JAXTABLE_TRACE_CACHE` is 0)."""
     base = jax.config.jax_compilation_cache_dir
-    raw = os.environ.get(ENV, "1").strip()
-    if raw not in ("0", "1"):
-        raise ValueError(f"${ENV} must be 0 (off) or 1 (on), got {raw!r}")
-    return Path(base) / "traced" if base and raw == "1" else None
+    return Path(base) / "traced" if env_switch(ENV, "off", "on") and base else None
 
 
 @functools.cache
