@@ -151,8 +151,15 @@ def _key(fun, options: dict, leaves, static_bytes: bytes) -> str:
     return h.hexdigest()
 
 
-def _caller(exported, options: dict):
-    return jax.jit(exported.call, **({"compiler_options": options} if options else {}))
+def _caller(exported, options: dict, name: str):
+    """The stored program, compiled under `name` (`_name`: so that compile logs, profiles
+    and the compilation cache's entries name the function it was traced from)."""
+
+    def run(*args):
+        return exported.call(*args)
+
+    run.__name__ = run.__qualname__ = name
+    return jax.jit(run, **({"compiler_options": options} if options else {}))
 
 
 class _Slot:
@@ -168,7 +175,7 @@ def _fill(template, arrays):
     return jax.tree.map(lambda x: arrays[x.index] if isinstance(x, _Slot) else x, template)
 
 
-def _load(path: Path, options: dict):
+def _load(path: Path, options: dict, name: str):
     try:
         blob, template = pickle.loads(path.read_bytes())
         exported = export.deserialize(bytearray(blob))
@@ -178,7 +185,16 @@ def _load(path: Path, options: dict):
         os.utime(path)  # recently used
     except OSError:
         pass
-    return _caller(exported, options), template
+    return _caller(exported, options, name), template
+
+
+def _name(fun, static) -> str:
+    """The program's name: the function's, joined by the name of a function passed as its
+    first argument (`run_batch`'s kernels are all `_vmap(fn, ...)`)."""
+    name = getattr(fun, "__name__", "program")
+    args = static[0]
+    inner = getattr(args[0], "__name__", None) if args and callable(args[0]) else None
+    return f"{name}_{inner}" if inner else name
 
 
 def _export(fun, static, treedef, leaves, options: dict):
@@ -240,7 +256,7 @@ def call(fun, options: dict, args: tuple, kwargs: dict, plain):
         if key in _REFUSED:
             return plain()
         path = folder / f"{key}{SUFFIX}"
-        entry = _load(path, options)
+        entry = _load(path, options, _name(fun, static))
         if entry is None:
             try:
                 exported, out = _export(fun, static, treedef, leaves, options)
@@ -248,7 +264,7 @@ def call(fun, options: dict, args: tuple, kwargs: dict, plain):
                 _REFUSED.add(key)
                 return plain()
             _store(folder, path, exported, out)
-            entry = _caller(exported, options), out
+            entry = _caller(exported, options, _name(fun, static)), out
         _MEMORY[key] = entry
     run, template = entry
     # as host arrays: a device array's placement (committed or not) is part of the stored

@@ -60,7 +60,8 @@ def test_a_stored_program_gives_the_same_results_without_tracing(table, store, t
     _tracecache._MEMORY.clear()  # as in a new process: only the stored entry is left
     traces.clear()
     np.testing.assert_array_equal(jt.actuator_command(table, q), first)
-    assert "flat" not in traces and "_vmap" not in traces  # loaded, not traced
+    assert "flat" not in traces and "_vmap" not in traces  # loaded, not traced ...
+    assert "_vmap__command_row" in traces  # ... and compiled under the kernel's name
     traces.clear()  # other values of the same shapes: the same program, nothing traced
     higher = jt.actuator_command(table, _poses(7, z=10.0))
     assert traces == [] and len(_entries(store)) == 1
