@@ -71,7 +71,7 @@ def platform_radius(table: Table) -> Float[ArrayLike, ""]:
     return jnp.mean(jnp.linalg.norm(table.platform_joints, axis=-1))
 
 
-def _newton(table, effects, s, guess, ctx, options, residual=length_residual):
+def _newton(table, effects, s, guess, ctx, options, residual=length_residual, factorization=False):
     """Newton's method on the scaled pose, written as one `lax.while_loop` whose body is
     the residual, its 6×6 Jacobian (one `jacfwd`, primal shared) and a fused elimination
     (`solve_small`); no derivative (see `forward_one`).
@@ -81,7 +81,12 @@ def _newton(table, effects, s, guess, ctx, options, residual=length_residual):
     rather than through `optx.root_find` because this solve sits inside every batched map,
     fit and Jacobian: the loop compiles to a fifth of the code (compile time of every
     program that contains it) and runs ~1.5× faster per step. `residual`: `length_residual`
-    or its nested jit (`_length_residual_once`)."""
+    or its nested jit (`_length_residual_once`).
+
+    `factorization=True` (no chord phase): also returns the last Newton step's (LU, perm)
+    and the unknown's scale (6,), for the implicit derivative (`_solve_jvp`). That step's
+    Jacobian is the one at the last iterate but one, which the stopping rule puts within
+    atol + rtol·|y| (~1e-10 mm) of the solution."""
     table, effects, s, guess, ctx = jax.lax.stop_gradient((table, effects, s, guess, ctx))
     scale = jnp.concatenate([jnp.ones(3), jnp.full(3, platform_radius(table))])
 
@@ -90,7 +95,7 @@ def _newton(table, effects, s, guess, ctx, options, residual=length_residual):
         return r, r
 
     def cond(carry):
-        y, k, done = carry
+        y, k, done = carry[:3]
         return ~done & (k < options.max_steps) & jnp.all(jnp.isfinite(y))
 
     def converged(y_new, dy, r):
@@ -106,17 +111,23 @@ def _newton(table, effects, s, guess, ctx, options, residual=length_residual):
         return y - dy, dy, r, LU, perm
 
     def body(carry):
-        y_new, dy, r, _, _ = newton_step(carry[0])
-        return y_new, carry[1] + 1, converged(y_new, dy, r)
+        y_new, dy, r, LU, perm = newton_step(carry[0])
+        out = (y_new, carry[1] + 1, converged(y_new, dy, r))
+        return out + (LU, perm) if factorization else out
 
+    n = guess.shape[0]
     start = (guess * scale, jnp.array(0), False)
+    if factorization:  # an identity until a step has factorised (max_steps = 0)
+        start += (jnp.eye(n, dtype=scale.dtype), jnp.arange(n, dtype=scale.dtype))
     if options.peel_first_step and options.max_steps > 0:
         start = body(start)  # under vmap, batched only in what depends on the batch
     if options.chord_below:
+        if factorization:
+            raise ValueError("the chord phase keeps no factorisation at the solution")
         start = _chord_phase(
             fn, newton_step, converged, start, cond, options.chord_below * scale[3]
         )
-    y, steps, done = jax.lax.while_loop(cond, body, start)
+    y, steps, done, *last = jax.lax.while_loop(cond, body, start)
     resid = jnp.max(jnp.abs(fn(y)[0]))
     finite = jnp.all(jnp.isfinite(y))
     result = RESULTS.where(done, RESULTS.successful, RESULTS.max_steps_reached)
@@ -132,7 +143,8 @@ def _newton(table, effects, s, guess, ctx, options, residual=length_residual):
     result = RESULTS.where(
         (result == RESULTS.successful) & below, RESULTS.non_physical_assembly, result
     )
-    return q, result, steps, jnp.where(ok, resid, jnp.inf)
+    out = q, result, steps, jnp.where(ok, resid, jnp.inf)
+    return out + (*last, scale) if factorization else out
 
 
 def _chord_phase(fn, newton_step, converged, start, cond, below):
@@ -192,18 +204,34 @@ def _solve(table, effects, s, guess, ctx, options):
 @_solve.defjvp
 def _solve_jvp(options, primals, tangents):
     """Implicit differentiation: r(q, θ, s) = 0 ⇒ dq = −(∂r/∂q)⁻¹ (∂r/∂θ dθ + ∂r/∂s ds),
-    with a plain-jnp 6×6 solve (no LAPACK call, no error on a failed primal)."""
+    with a plain-jnp 6×6 solve (no LAPACK call, no error on a failed primal).
+
+    ∂r/∂q from the Newton solve's last factorisation (`_newton(..., factorization=True)`:
+    the Jacobian within ~1e-10 mm of the solution, so the same derivative to ~1e-13
+    relative) instead of a Jacobian and an elimination of its own: one copy less of the
+    residual's derivative in every differentiated program (fits, their Jacobians, the
+    diagnosis), which their tracing and compile time scale with. With a chord phase the
+    last factorisation is older (up to 1e-3 of the platform radius away): ∂r/∂q is then
+    evaluated at the solution."""
     table, effects, s, guess, ctx = primals
     t_table, t_effects, t_s, _, _ = tangents
-    out = _newton(table, effects, s, guess, ctx, options, _length_residual_once)
+    reuse = not options.chord_below
+    out = _newton(table, effects, s, guess, ctx, options, _length_residual_once, reuse)
     q = out[0]
     _, dr = jax.jvp(
         lambda t, e, s_: _length_residual_once(t, e, q, s_, ctx),
         (table, effects, s),
         (t_table, t_effects, t_s),
     )
-    Jq = jax.jacfwd(lambda qq: _length_residual_once(table, effects, qq, s, ctx))(q)
-    dq = -solve_small(Jq, dr[:, None])[:, 0]
+    if reuse:  # ∂r/∂q = ∂r/∂y diag(scale) for the scaled unknown y = q·scale
+        LU, perm, scale = out[4:]
+        finite = jnp.all(jnp.isfinite(LU))  # a diverged solve: finite, meaningless tangents
+        LU = jnp.where(finite, LU, jnp.eye(LU.shape[0], dtype=LU.dtype))
+        dq = -lu_solve_small(LU, perm, dr[:, None])[:, 0] / scale
+        out = out[:4]
+    else:
+        Jq = jax.jacfwd(lambda qq: _length_residual_once(table, effects, qq, s, ctx))(q)
+        dq = -solve_small(Jq, dr[:, None])[:, 0]
     no_tangent = jax.tree.map(lambda x: np.zeros(np.shape(x), dtype=jax.dtypes.float0), out[1:3])
     return out, (dq, *no_tangent, jnp.zeros_like(out[3]))
 

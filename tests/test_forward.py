@@ -105,6 +105,35 @@ def test_forward_gradient_matches_finite_differences(table):
     )
 
 
+@pytest.mark.parametrize("chord_below", [None, 1e-3])
+def test_implicit_derivative_is_the_inverse_command_jacobian(table, chord_below):
+    """d pose / d extension through one solve from home, forward and reverse mode, = the
+    inverse of d(command)/d(pose) (implicit function theorem, from the kinematics alone):
+    without a chord phase the derivative reuses the Newton solve's last factorisation, with
+    one (its factorisation up to 1e-3 of the platform radius away) it takes the Jacobian at
+    the solution; both to 1e-9."""
+    from jaxtable._forward import forward_one
+
+    pose = np.array([120.0, -60.0, 30.0, 0.06, -0.04, 0.1])
+    s = jnp.asarray(jt.actuator_command(table, pose) - np.asarray(table.zero_lengths))
+    opts = jt.ForwardOptions(chord_below=chord_below)
+    eff = {"spiral": jt.Spiral.from_table(table)}
+
+    def f(x):
+        return forward_one(table, eff, x, jnp.zeros(6), opts)[0]
+
+    q, result, steps, _ = forward_one(table, eff, s, jnp.zeros(6), opts)
+    assert result == jt.RESULTS.successful and int(steps) >= 4  # several steps from home
+    np.testing.assert_allclose(np.asarray(q), pose, atol=1e-9)
+
+    def g(p):
+        return kin.leg_lengths(table, p) - kin.spiral_extension(table, p)
+
+    truth = np.linalg.inv(np.asarray(jax.jacfwd(g)(jnp.asarray(pose))))
+    for J in (jax.jacfwd(f)(s), jax.jacrev(f)(s)):
+        np.testing.assert_allclose(np.asarray(J), truth, rtol=1e-9, atol=1e-14)
+
+
 def test_forward_gradient_wrt_table_parameters(table):
     """d pose / d lead through the solve (implicit diff) = finite differences."""
     pose = np.array([-150.0, 40.0, 10.0, 0.05, -0.03, 0.08])
