@@ -255,8 +255,8 @@ def call(fun, options: dict, args: tuple, kwargs: dict, plain):
     if entry is None:
         if key in _REFUSED:
             return plain()
-        path = folder / f"{key}{SUFFIX}"
-        entry = _load(path, options, _name(fun, static))
+        path, name = folder / f"{key}{SUFFIX}", _name(fun, static)
+        entry = _load(path, options, name)
         if entry is None:
             try:
                 exported, out = _export(fun, static, treedef, leaves, options)
@@ -264,7 +264,7 @@ def call(fun, options: dict, args: tuple, kwargs: dict, plain):
                 _REFUSED.add(key)
                 return plain()
             _store(folder, path, exported, out)
-            entry = _caller(exported, options, _name(fun, static)), out
+            entry = _caller(exported, options, name), out
         _MEMORY[key] = entry
     run, template = entry
     # as host arrays: a device array's placement (committed or not) is part of the stored
