@@ -216,7 +216,7 @@ def error_map_op_counts(table: Table, cond: bool) -> dict:
     the condition number when `cond`, reachability and the summary's bins."""
     sigmas = tuple(Tolerances().sigma(s) for s in SOURCES)
     N = 4096
-    f = jax.jit(jax.vmap(lambda q: _budget_row((table, sigmas, cond), q)))
+    f = jax.jit(jax.vmap(lambda q: _budget_row((table, sigmas, cond, False), q)))
     return hlo_op_counts(f.lower(jnp.zeros((N, 6))).compile().as_text(), N)
 
 

@@ -23,7 +23,7 @@ import jaxtable as jt
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 SLICES = [(("x", "y"), None), (("roll", "pitch"), None), (("z", "yaw"), None)]
-CHUNK = 8192  # error_map's chunk for the big map
+CHUNK = 1 << 16  # error_map's chunk for the big map (its default)
 # Monte Carlo cases: name, commanded pose (mm / deg), tolerance factor. The low poses bring the
 # platform down towards the base plane, where the legs lie almost flat (singular).
 MC_CASES = [

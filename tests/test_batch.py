@@ -81,6 +81,55 @@ def test_small_batches_share_a_compiled_size_and_lose_no_row():
     assert compiles.count("jit(_vmap)") == 1, compiles
 
 
+def test_large_batches_run_in_per_core_pieces_and_lose_no_row(monkeypatch):
+    """A large batch on the CPU runs as pieces of BLOCK-row blocks from host threads: the
+    piece sizes by hand, and every row equal to numpy's value of the row function, for
+    several chunks, a padded last piece, one worker or several, an empty batch; an error
+    raised inside a piece reaches the caller; `stream_batch` yields every part, small and
+    large, in order."""
+    import equinox as eqx
+
+    from jaxtable import _batch
+    from jaxtable._batch import BLOCK, LARGE_BATCH, piece_rows, stream_batch
+
+    assert BLOCK == 128 and LARGE_BATCH == 4096
+    # 10⁶ rows, chunk 2¹⁶: 16 chunks of 62,500, 31,250 a core, in multiples of 2048 rows
+    assert piece_rows(10**6, 1 << 16, 2) == 32768
+    assert piece_rows(10**4, 1 << 13, 2) == 2560  # 2 chunks of 5000: 2500 -> 10 × 256
+    assert piece_rows(4106, 1 << 20, 2) == 4096  # far under the chunk: a power of two
+    assert piece_rows(10**6, 1 << 13, 16) == 512
+    assert piece_rows(5000, 1 << 16, 1) == 4096 * 2
+
+    rng = np.random.default_rng(7)
+    shared = (jnp.asarray(2.0), jnp.asarray([1.0, 2.0, 3.0]))
+    for workers in (1, 3):
+        monkeypatch.setattr(_batch, "cpu_workers", lambda w=workers: w)
+        for n in (LARGE_BATCH, 3 * LARGE_BATCH + 37):
+            x, y = rng.normal(size=(n, 3)), rng.normal(size=(n, 2))
+            a, b = run_batch(_row, shared, (x, y), chunk=LARGE_BATCH)
+            assert isinstance(a, np.ndarray) and a.shape == (n, 3) and b.shape == (n,)
+            np.testing.assert_allclose(a, 2.0 * np.sin(x) + [1.0, 2.0, 3.0], rtol=1e-14)
+            np.testing.assert_allclose(b, (y * y).sum(1), rtol=1e-14)
+    a, b = run_batch(_row, shared, (np.zeros((0, 3)), np.zeros((0, 2))))
+    assert a.shape == (0, 3) and b.shape == (0,)
+
+    def picky(shared, row):
+        return eqx.error_if(row, row[0] > 100.0, "row too large")
+
+    x = np.zeros((2 * LARGE_BATCH, 3))
+    x[LARGE_BATCH + 5, 0] = 1e3  # in the second piece
+    with pytest.raises(Exception, match="row too large"):
+        run_batch(picky, None, x)
+
+    sizes = [5000, 100, 2 * LARGE_BATCH, 0, 7]
+    parts = [rng.normal(size=(n, 3)) for n in sizes]
+    seen = list(stream_batch(lambda s, r: jnp.cos(r) * s, 1.5, iter(parts), chunk=LARGE_BATCH))
+    assert [len(p) for p, _ in seen] == sizes
+    for (p, got), want in zip(seen, parts):
+        assert p is want
+        np.testing.assert_allclose(got, np.cos(want) * 1.5, rtol=1e-14)
+
+
 def test_actuator_command_chunked_equals_one_chunk(table):
     poses = random_poses(1000, seed=3)
     a = np.asarray(jt.actuator_command(table, poses))

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._batch import run_batch
+from .._batch import stream_batch
 from .._effects import Effects, resolve_effects
 from .._errors import require_x64
 from .._kinematics import spiral_extension, within_limits
@@ -67,11 +67,9 @@ def command_map(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=n, unit="pose", desc=f"command map, {n} poses")
-    for start in range(0, n, chunk):
-        p = grid.poses(start, start + chunk)
-        cmd, spiral, reach = (
-            np.asarray(x) for x in run_batch(_command_map_row, (table, eff), p, chunk=chunk)
-        )
+    parts = (grid.poses(start, start + chunk) for start in range(0, n, chunk))
+    # the next chunks compute while this loop reduces the finished one (`stream_batch`)
+    for p, (cmd, spiral, reach) in stream_batch(_command_map_row, (table, eff), parts, chunk=chunk):
         if keep:
             kept.append((cmd.astype(np.float32), spiral.astype(np.float32), reach))
         if reach.any():

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._batch import run_batch
+from .._batch import stream_batch
 from .._errors import require_x64
 from .._forward import platform_radius
 from .._kinematics import within_limits
@@ -80,13 +80,16 @@ def _margins(std, bias):
 def _budget_row(shared, pose):
     """`budget_one` and what the streamed summary needs of it: the 2 × (n_sources + 2) RMS
     errors (translation mm, rotation arcsec) with their histogram bins, and whether the two
-    target margins are met; the host then only counts bins."""
-    table, sigmas, with_cond = shared
+    target margins are met; the host then only counts bins. shared = (table, sigmas,
+    with_cond, keep): without `keep` the per-pose σ and bias are not returned (None)."""
+    table, sigmas, with_cond, keep = shared
     std, bias, cond, reach = budget_one(table, sigmas, pose, with_cond)
     tc, tu = _rms(std, bias, slice(0, 3))
     rc, ru = _rms(std, bias, slice(3, 6))
     values = jnp.stack([jnp.append(tc, tu), jnp.append(rc, ru) * ARCSEC_PER_RAD])
     ok = jnp.stack(_margins(std, bias)) <= TARGET_MM
+    if not keep:
+        std = bias = None
     return std, bias, cond, reach, values, _Histograms.bin_index(values), ok
 
 
@@ -163,7 +166,7 @@ def error_map(
     grid: "Grid | PoseList | np.ndarray | None" = None,
     *,
     keep: bool = True,
-    chunk: int = 8192,
+    chunk: int = 1 << 16,
     progress: bool = False,
     cond: bool = True,
 ):
@@ -174,7 +177,8 @@ def error_map(
     Returns (ErrorMap or None when `keep=False`, summary dict). The summary streams over the
     reachable poses: for every source and the totals (compensated, uncompensated), the max
     and 95th percentile of the RMS translation (mm) and rotation (arcsec) error, and the
-    fraction of poses meeting the ±0.2 mm target. Peak memory is one chunk's work plus, with
+    fraction of poses meeting the ±0.2 mm target. Peak memory is a few chunks' results (the
+    next chunks compute while the last one is counted; about 200 bytes a pose) plus, with
     `keep`, the per-pose results (about 100 bytes a pose).
     """
     require_x64()
@@ -190,21 +194,21 @@ def error_map(
     cond_max = 0.0 if cond else float("nan")
     out = [] if keep else None
     n = len(grid)
-    for start in tqdm(
-        range(0, n, chunk), disable=not progress, unit="chunk", desc=f"error map, {n} poses"
+    bar = tqdm(total=n, disable=not progress, unit="pose", desc=f"error map, {n} poses")
+    parts = (grid.poses(start, start + chunk) for start in range(0, n, chunk))
+    # the next chunks compute while this loop counts the finished one (`stream_batch`)
+    for p, (std, bias, kappa, reach, values, bins, ok) in stream_batch(
+        _budget_row, (table, sigmas, bool(cond), keep), parts, chunk=chunk
     ):
-        p = grid.poses(start, start + chunk)
-        std, bias, kappa, reach, values, bins, ok = run_batch(
-            _budget_row, (table, sigmas, bool(cond)), p, chunk=chunk
-        )
-        reach = np.asarray(reach)
         if keep:
-            out.append(tuple(np.asarray(x, np.float32) for x in (std, bias, kappa)) + (reach,))
-        hist.add(np.asarray(values)[reach], np.asarray(bins)[reach])
+            out.append(tuple(x.astype(np.float32) for x in (std, bias, kappa)) + (reach,))
+        hist.add(values[reach], bins[reach])
         n_reach += int(reach.sum())
-        n_ok += np.asarray(ok)[reach].sum(axis=0)
+        n_ok += ok[reach].sum(axis=0)
         if cond and reach.any():
-            cond_max = max(cond_max, float(np.asarray(kappa)[reach].max()))
+            cond_max = max(cond_max, float(kappa[reach].max()))
+        bar.update(len(p))
+    bar.close()
     summary = {
         "poses": n,
         "reachable": n_reach,
