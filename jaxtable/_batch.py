@@ -134,15 +134,24 @@ def _in_pieces() -> bool:
     )
 
 
+def _quarter_octave(x: int) -> int:
+    """The smallest m·2^k ≥ x with m in {4, 5, 6, 7}: four sizes an octave (at most 25 %
+    padding), so that batches of many sizes share a few compiled shapes."""
+    if x <= 4:
+        return max(x, 1)
+    k = max(0, (x - 1).bit_length() - 3)
+    return ((x + (1 << k) - 1) >> k) << k
+
+
 def piece_rows(n: int, chunk: int, workers: int) -> int:
-    """Rows of each per-core piece of a large batch of `n` rows (`_Part`): the batch's chunks
-    (`chunk_rows`) shared among `workers`, rounded up to a multiple of BLOCK × ⌈chunk / 16 /
-    workers / BLOCK⌉ (sizes shared between batches, as `chunk_rows`), or to a power of two
-    where that is smaller (a batch much smaller than the chunk)."""
-    per_chunk = math.ceil(n / math.ceil(n / chunk))
-    share = math.ceil(per_chunk / workers)
-    quantum = BLOCK * max(1, math.ceil(chunk / 16 / workers / BLOCK))
-    return min(quantum * math.ceil(share / quantum), max(BLOCK, 1 << (share - 1).bit_length()))
+    """Rows of each per-core piece of a large batch of `n` rows (`_Part`): the batch shared
+    among `workers`, rounded up to four sizes an octave (`_quarter_octave`) and to a
+    multiple of BLOCK, at most the largest power of two ≤ chunk / workers (a batch beyond
+    that runs as more pieces of that size, two a worker in flight). Sizes by hand in
+    `tests/test_batch.py`."""
+    cap = 1 << max(BLOCK, chunk // workers).bit_length() - 1
+    share = _quarter_octave(math.ceil(n / workers))
+    return min(cap, BLOCK * math.ceil(share / BLOCK))
 
 
 class _Part:

@@ -93,13 +93,14 @@ def test_large_batches_run_in_per_core_pieces_and_lose_no_row(monkeypatch):
     from jaxtable._batch import BLOCK, LARGE_BATCH, piece_rows, stream_batch
 
     assert BLOCK == 128 and LARGE_BATCH == 4096
-    # 10⁶ rows, chunk 2¹⁶: 16 chunks of 62,500, 31,250 a core, in multiples of 2048 rows
-    assert piece_rows(10**6, 1 << 16, 2) == 32768
-    assert piece_rows(10**4, 1 << 13, 2) == 2560  # 2 chunks of 5000: 2500 -> 10 × 256
-    assert piece_rows(4106, 1 << 20, 2) == 4096  # far under the chunk: a power of two
-    assert piece_rows(10**6, 1 << 13, 16) == 512
-    assert piece_rows(5000, 1 << 16, 1) == 4096 * 2
-
+    # the rows a worker gets, rounded up to m·2^k (m = 4..7) and to BLOCK rows, at most the
+    # largest power of two ≤ chunk / workers
+    assert piece_rows(10**6, 1 << 16, 2) == 32768  # 500,000 a worker: capped at 2¹⁵
+    assert piece_rows(10**4, 1 << 15, 2) == 5120  # 5000 -> 5·2¹⁰
+    assert piece_rows(4106, 1 << 20, 2) == 2560  # 2053 -> 5·2⁹
+    assert piece_rows(4096, 1 << 16, 14) == 384  # 293 -> 5·2⁶ = 320 -> 3 blocks
+    assert piece_rows(10**6, 1 << 13, 16) == 512  # capped at 8192 / 16
+    assert piece_rows(12345, 1 << 16, 1) == 14336  # 7·2¹¹
     rng = np.random.default_rng(7)
     shared = (jnp.asarray(2.0), jnp.asarray([1.0, 2.0, 3.0]))
     for workers in (1, 3):
