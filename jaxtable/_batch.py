@@ -172,7 +172,11 @@ class _Part:
         self._lock = threading.Lock()
         pool = _pool(workers)
         self.tasks = [
-            (start, min(size, self.n - start), pool.submit(self._run, kernel, fn, shared, start, size))
+            (
+                start,
+                min(size, self.n - start),
+                pool.submit(self._run, kernel, fn, shared, start, size),
+            )
             for start in range(0, max(self.n, 1), size)  # an empty batch: one empty piece
         ]
 
@@ -191,13 +195,23 @@ class _Part:
             o[start : start + m] = x[:m]
 
     def result(self, bar=None):
-        """The outputs (numpy pytree), once every piece is done (re-raising a piece's error)."""
-        for _, m, fut in self.tasks:
-            fut.result()
-            if bar is not None:
-                bar.update(m)
+        """The outputs (numpy pytree), once every piece is done. A piece's error (or an
+        interrupt while waiting) cancels the pieces not yet started and is raised."""
+        try:
+            for _, m, fut in self.tasks:
+                fut.result()
+                if bar is not None:
+                    bar.update(m)
+        except BaseException:
+            self.cancel()
+            raise
         self.batched = None
         return jax.tree.unflatten(self.treedef, self.out)
+
+    def cancel(self):
+        """Drop the pieces not yet started (those running finish)."""
+        for _, _, fut in self.tasks:
+            fut.cancel()
 
 
 def stream_batch(fn, shared, parts, *, chunk: int = DEFAULT_CHUNK, min_rows=SMALL_BATCH):
@@ -207,21 +221,28 @@ def stream_batch(fn, shared, parts, *, chunk: int = DEFAULT_CHUNK, min_rows=SMAL
     core ahead), so a loop that reduces each part on the host keeps the cores busy."""
     if not _in_pieces():
         for part in parts:
-            yield part, jax.tree.map(
-                np.asarray, run_batch(fn, shared, part, chunk=chunk, min_rows=min_rows)
+            yield (
+                part,
+                jax.tree.map(
+                    np.asarray, run_batch(fn, shared, part, chunk=chunk, min_rows=min_rows)
+                ),
             )
         return
     workers = cpu_workers()
     ahead = deque()
-    for part in parts:
-        part_np = jax.tree.map(np.asarray, part)
-        ahead.append((part, _Part(fn, shared, part_np, chunk, min_rows, workers)))
-        while sum(len(p.tasks) for _, p in ahead) > 2 * workers and len(ahead) > 1:
+    try:
+        for part in parts:
+            part_np = jax.tree.map(np.asarray, part)
+            ahead.append((part, _Part(fn, shared, part_np, chunk, min_rows, workers)))
+            while sum(len(p.tasks) for _, p in ahead) > 2 * workers and len(ahead) > 1:
+                done, p = ahead.popleft()
+                yield done, p.result()
+        while ahead:
             done, p = ahead.popleft()
             yield done, p.result()
-    while ahead:
-        done, p = ahead.popleft()
-        yield done, p.result()
+    finally:  # the caller stopped early (an error, an interrupt, a break): drop the rest
+        for _, p in ahead:
+            p.cancel()
 
 
 @eqx.filter_jit

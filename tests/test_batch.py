@@ -121,6 +121,31 @@ def test_large_batches_run_in_per_core_pieces_and_lose_no_row(monkeypatch):
     x[LARGE_BATCH + 5, 0] = 1e3  # in the second piece
     with pytest.raises(Exception, match="row too large"):
         run_batch(picky, None, x)
+    # one worker, 16 pieces: the error in the second stops the pieces not yet started
+    monkeypatch.setattr(_batch, "cpu_workers", lambda: 1)
+    calls, real = [], _batch._blocked
+
+    def counted(*args):
+        calls.append(1)
+        return real(*args)
+
+    monkeypatch.setattr(_batch, "_blocked", counted)
+    x = np.zeros((16 * LARGE_BATCH, 3))
+    x[LARGE_BATCH + 5, 0] = 1e3
+    with pytest.raises(Exception, match="row too large"):
+        run_batch(picky, None, x, chunk=LARGE_BATCH)
+    _batch._pool(1).submit(lambda: None).result()  # the pool drained of whatever still ran
+    assert 2 <= len(calls) <= 4, len(calls)
+    # a stream the caller leaves after its first part: the parts computed ahead are dropped
+    calls.clear()
+    stream = stream_batch(_row, shared, ((x, x[:, :2]) for _ in range(8)), chunk=LARGE_BATCH)
+    next(stream)
+    stream.close()
+    _batch._pool(1).submit(lambda: None).result()
+    # 8 parts of 16 pieces, the second computed ahead: the first part and a piece or two
+    # of the second ran (32 with the second part left running)
+    assert 16 <= len(calls) <= 18, len(calls)
+    monkeypatch.setattr(_batch, "_blocked", real)
 
     sizes = [5000, 100, 2 * LARGE_BATCH, 0, 7]
     parts = [rng.normal(size=(n, 3)) for n in sizes]
