@@ -195,8 +195,9 @@ class _Part:
             o[start : start + m] = x[:m]
 
     def result(self, bar=None):
-        """The outputs (numpy pytree), once every piece is done. A piece's error (or an
-        interrupt while waiting) cancels the pieces not yet started and is raised."""
+        """The outputs (numpy pytree), once every piece is done (`bar`: a progress bar to
+        advance). A piece's error (or an interrupt while waiting) cancels the pieces not yet
+        started and is raised."""
         try:
             for _, m, fut in self.tasks:
                 fut.result()
@@ -297,21 +298,23 @@ def chunk_rows(n: int, chunk: int, n_dev: int = 1, min_rows: int = SMALL_BATCH) 
     return quantum * math.ceil(math.ceil(n / n_chunks) / quantum)
 
 
+def _progress_bar(n: int, progress):
+    """A progress bar over `n` rows (`progress`: its description, True, or falsy for a
+    disabled one)."""
+    from tqdm.auto import tqdm
+
+    desc = progress if isinstance(progress, str) else None
+    return tqdm(total=n, unit="row", desc=desc, disable=not progress)
+
+
 def _run_local(fn, shared, batched, n: int, chunk: int, progress=None, min_rows=SMALL_BATCH):
     """All rows of `batched` (numpy leaves, n rows) on this process's devices, in chunks."""
     mesh = batch_mesh()
     n_dev = 1 if mesh is None else mesh.size
     size = chunk_rows(n, chunk, n_dev, min_rows)
     if size >= LARGE_BATCH and _in_pieces():
-        bar = None
-        if progress:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=n, unit="row", desc=progress if isinstance(progress, str) else None)
-        out = _Part(fn, shared, batched, chunk, min_rows, cpu_workers()).result(bar)
-        if bar is not None:
-            bar.close()
-        return out
+        with _progress_bar(n, progress) as bar:
+            return _Part(fn, shared, batched, chunk, min_rows, cpu_workers()).result(bar)
     if mesh is not None:
         rows = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
         everywhere = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
@@ -330,26 +333,19 @@ def _run_local(fn, shared, batched, n: int, chunk: int, progress=None, min_rows=
         return launch(0)  # one chunk on one device: keep the device arrays
     out = None
     pending = None
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=n, unit="row", desc=progress if isinstance(progress, str) else None)
-    for start in list(starts) + [None]:
-        nxt = None if start is None else (start, launch(start))
-        if pending is not None:
-            p_start, p_out = pending
-            m = min(size, n - p_start)
-            leaves, treedef = jax.tree.flatten(p_out)
-            if out is None:
-                out = [np.empty((n,) + x.shape[1:], dtype=x.dtype) for x in leaves]
-            for o, x in zip(out, leaves):
-                o[p_start : p_start + m] = np.asarray(x)[:m]
-            if bar is not None:
+    with _progress_bar(n, progress) as bar:
+        for start in list(starts) + [None]:
+            nxt = None if start is None else (start, launch(start))
+            if pending is not None:
+                p_start, p_out = pending
+                m = min(size, n - p_start)
+                leaves, treedef = jax.tree.flatten(p_out)
+                if out is None:
+                    out = [np.empty((n,) + x.shape[1:], dtype=x.dtype) for x in leaves]
+                for o, x in zip(out, leaves):
+                    o[p_start : p_start + m] = np.asarray(x)[:m]
                 bar.update(m)
-        pending = nxt
-    if bar is not None:
-        bar.close()
+            pending = nxt
     return jax.tree.unflatten(treedef, out)
 
 
