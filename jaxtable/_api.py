@@ -28,6 +28,7 @@ from ._errors import (
     require_x64,
 )
 from ._forward import CHORD_BELOW, RESULTS, ForwardOptions, forward_one
+from ._jit import LARGE_BATCH
 from ._model import inverse_extension
 from ._table import Table
 
@@ -271,10 +272,11 @@ def forward_solve(
         if guess.ndim > 1:
             guess = jnp.broadcast_to(guess.reshape(-1, 6), (n, 6))
     shared_guess, row_guess = (guess, None) if guess.ndim == 1 else (None, guess)
-    if shared_guess is not None:  # one first step for the batch (see ForwardOptions)
-        options = dataclasses.replace(options, peel_first_step=True)
+    large = n >= LARGE_BATCH  # smaller batches: plain Newton, the quickest to compile
+    if options.peel_first_step is None:  # one first step for the batch (see ForwardOptions)
+        options = dataclasses.replace(options, peel_first_step=large and guess.ndim == 1)
     if options.chord_below is None:
-        options = dataclasses.replace(options, chord_below=CHORD_BELOW)
+        options = dataclasses.replace(options, chord_below=CHORD_BELOW if large else 0.0)
     shared_ctx, row_ctx = split_context(n, context)
     out = run_batch(
         _forward_row,

@@ -291,13 +291,14 @@ def test_first_step_for_the_batch_changes_nothing(table, effects):
     """A guess shared by the batch takes its first Newton step before the loop (its Jacobian
     once for the batch): poses, step counts and results equal those of the same guess given
     per row, successes and failures alike, with and without an effect that depends on s
-    (whose Jacobian stays per pose)."""
+    (whose Jacobian stays per pose). (The default on large batches; asked for here.)"""
     if effects is not None:
         effects = {"spiral": jt.Spiral.from_table(table), "lead_scale": jt.LeadScale(2e-4)}
     cmd = np.array(jt.actuator_command(table, random_poses(300, seed=12)))
     cmd[7] = [600.0, 1060.0, 600.0, 1060.0, 600.0, 1060.0]  # no pose fits: a failure
     cmd[8] = np.asarray(table.zero_lengths)  # home: converges at the first step
-    shared = jt.forward_solve(table, cmd, effects=effects)
+    peel = jt.ForwardOptions(peel_first_step=True)
+    shared = jt.forward_solve(table, cmd, effects=effects, options=peel)
     per_row = jt.forward_solve(table, cmd, effects=effects, guess=np.zeros((len(cmd), 6)))
     np.testing.assert_allclose(np.asarray(shared.pose), np.asarray(per_row.pose), atol=1e-12)
     np.testing.assert_array_equal(np.asarray(shared.steps), np.asarray(per_row.steps))
@@ -308,11 +309,12 @@ def test_first_step_for_the_batch_changes_nothing(table, effects):
 @pytest.mark.parametrize("effects", [None, {"lead_scale": "s-dependent"}])
 def test_chord_steps_land_where_newton_does(table, effects):
     """Batch forward kinematics switches to chord steps (the last factorisation reused) once
-    a Newton step is below 1e-3 of the platform radius: the same poses as Newton's to the
-    stopping rule's precision, the same successes and failures, round trips within 1e-9 mm,
-    and the switch really happens (linear convergence: some poses need an extra step).
-    With the switch far earlier (every step after the first from a home guess, chord steps
-    with the home Jacobian across the whole workspace) the answers are still the same."""
+    a Newton step is below 1e-3 of the platform radius (the default on large batches, asked
+    for here): the same poses as Newton's to the stopping rule's precision, the same
+    successes and failures, round trips within 1e-9 mm, and the switch really happens
+    (linear convergence: some poses need an extra step). With the switch far earlier (every
+    step after the first from a home guess, chord steps with the home Jacobian across the
+    whole workspace) the answers are still the same."""
     if effects is not None:
         effects = {"spiral": jt.Spiral.from_table(table), "lead_scale": jt.LeadScale(2e-4)}
     poses = random_poses(2000, seed=13)
@@ -322,7 +324,9 @@ def test_chord_steps_land_where_newton_does(table, effects):
     newton = jt.forward_solve(
         table, cmd, effects=effects, options=jt.ForwardOptions(chord_below=0.0)
     )
-    chord = jt.forward_solve(table, cmd, effects=effects)
+    chord = jt.forward_solve(
+        table, cmd, effects=effects, options=jt.ForwardOptions(chord_below=1e-3)
+    )
     early = jt.forward_solve(
         table,
         cmd,
@@ -339,6 +343,48 @@ def test_chord_steps_land_where_newton_does(table, effects):
     extra = np.asarray(chord.steps) - np.asarray(newton.steps)
     assert extra.min() >= 0 and (extra > 0).mean() > 0.05, np.bincount(extra - extra.min())
     assert np.asarray(early.steps)[ok].mean() > np.asarray(newton.steps)[ok].mean() + 3
+
+
+def test_batch_size_chooses_the_newton_variant(table, monkeypatch):
+    """`forward_solve`'s defaults: from `LARGE_BATCH` rows the peeled first step (shared
+    guess only) and chord steps below `CHORD_BELOW`; under it plain Newton steps, whatever
+    the guess; options the caller sets are kept as they are. The small batch's default
+    gives exactly what plain Newton asked for explicitly gives."""
+    from jaxtable import _api
+    from jaxtable._forward import CHORD_BELOW
+    from jaxtable._jit import LARGE_BATCH
+
+    seen = []
+
+    def spy(fn, shared, batched, **kw):
+        seen.append(shared[2])
+        raise StopIteration  # the decision is all this test reads
+
+    monkeypatch.setattr(_api, "run_batch", spy)
+    one = np.asarray(table.zero_lengths)
+    cases = [
+        (LARGE_BATCH, None, {}, (True, CHORD_BELOW)),
+        (LARGE_BATCH, "rows", {}, (False, CHORD_BELOW)),
+        (LARGE_BATCH - 1, None, {}, (False, 0.0)),
+        (LARGE_BATCH - 1, "rows", {}, (False, 0.0)),
+        (10, None, dict(peel_first_step=True, chord_below=2e-3), (True, 2e-3)),
+        (LARGE_BATCH, None, dict(peel_first_step=False, chord_below=0.0), (False, 0.0)),
+    ]
+    for n, guess, options, _ in cases:
+        g = np.zeros((n, 6)) if guess == "rows" else None
+        with pytest.raises(StopIteration):
+            jt.forward_solve(
+                table, np.tile(one, (n, 1)), guess=g, options=jt.ForwardOptions(**options)
+            )
+    assert [(o.peel_first_step, o.chord_below) for o in seen] == [c[-1] for c in cases]
+    monkeypatch.undo()
+    cmd = np.asarray(jt.actuator_command(table, random_poses(50, seed=3)))
+    default = jt.forward_solve(table, cmd)
+    plain = jt.forward_solve(
+        table, cmd, options=jt.ForwardOptions(peel_first_step=False, chord_below=0.0)
+    )
+    np.testing.assert_array_equal(np.asarray(default.pose), np.asarray(plain.pose))
+    np.testing.assert_array_equal(np.asarray(default.steps), np.asarray(plain.steps))
 
 
 def test_chord_step_that_would_not_halve_is_not_taken():
