@@ -219,6 +219,43 @@ def test_smoothed_worst_cases_bracket_and_converge_to_the_exact_ones(design, few
 # ---------------------------------------------------------------- optimisation
 
 
+def test_stacks_of_any_size_share_few_compiled_programs(design):
+    """`assess_designs` runs stacks of up to 64 designs as the next power of two (at least
+    8) and larger ones in whole chunks of 64: stacks of 3, 9 and 70 designs compile three
+    programs (8, 16 and 64 designs), then 5 and 130 designs compile nothing. Every design's
+    criteria equal `design_criteria` of that design alone, the padding's included ones
+    (the last design of each stack) too."""
+    import jax.monitoring
+
+    compiles = []
+
+    def listen(event, duration, fun_name="?", **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(fun_name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    poses = jnp.asarray(jt.design_poses(None, n_sweep=5, n_random=16, box=2))  # as below
+    heights = {n: np.linspace(450.0, 850.0, n) for n in (3, 9, 70, 5, 130)}
+    try:
+        out = {}
+        for n, hs in heights.items():
+            if n == 5:
+                assert compiles.count("jit(_vmap__design_row)") == 3, compiles
+            out[n] = jt.assess_designs(
+                stack([set_values(design, {"home_height": h}) for h in hs]), poses
+            )
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiles.count("jit(_vmap__design_row)") == 3, compiles
+    for n in (3, 70, 130):
+        for i in (0, n // 2, n - 1):
+            d = set_values(design, {"home_height": heights[n][i]})
+            one = jt.design_criteria(d.table(), d.hardware, poses)
+            for k, v in one.items():
+                assert out[n][k].shape == (n,)
+                np.testing.assert_allclose(out[n][k][i], float(v), rtol=1e-12, err_msg=k)
+
+
 def test_gradient_optimum_matches_a_brute_force_grid(design):
     poses = jt.design_poses(None, n_sweep=5, n_random=16, box=2)
     names = ("home_height", "platform_radius")

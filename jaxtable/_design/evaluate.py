@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._analysis.workspaces import PoseList, Workspace
-from .._batch import run_batch
+from .._batch import _pad_rows, run_batch
 from .._errors import TableFileError, is_concrete
 from .._jit import jit
 from .._table import Table
@@ -145,17 +145,34 @@ def assess(
     return Assessment(design, poses, values, K, per_pose)
 
 
-@eqx.filter_jit  # many designs: a streaming kernel (XLA's default emitters, `_jit`)
-def _batch(designs: Design, poses, smooth):
-    def one(d):
-        return criteria(d.table(), d.hardware, poses, smooth)
+DESIGN_CHUNK = 64
+"""Designs per compiled call of `assess_batch`: a design's row is every criterion over all
+the poses (~8 ms for 1000 poses), so a few dozen designs a call already amortise the call;
+a stack of up to 64 designs runs as the next power of two (at least 8), a larger one in
+chunks of 64 (its last one padded), so stacks of any size share four compiled programs at
+most for given poses (each takes seconds to compile; the optimiser's stacks of finals
+differ in size from call to call)."""
 
-    return jax.vmap(one)(designs)
+
+def _design_row(shared, design: Design):
+    """Every criterion of one design (the row function of `assess_batch`)."""
+    poses, smooth = shared
+    return criteria(design.table(), design.hardware, poses, smooth)
 
 
-def assess_batch(designs: Design, poses, smooth: float | None = None) -> dict:
+def assess_batch(
+    designs: Design, poses, smooth: float | None = None, *, chunk: int = DESIGN_CHUNK
+) -> dict:
     """Criteria of a stack of designs (leaves with a leading design axis, see
-    `variables.stack`) over the same poses (N, 6): {name: (D,) numpy}. One compiled program,
-    vmapped over designs and poses."""
-    out = _batch(designs, jnp.asarray(poses, dtype=jnp.float64), smooth)
-    return {k: np.asarray(v) for k, v in out.items()}
+    `variables.stack`) over the same poses (N, 6): {name: (D,) numpy}. vmapped over designs
+    and poses, `chunk` designs a call (`DESIGN_CHUNK`; `_batch.run_batch`'s padding); jax
+    arrays inside a trace."""
+    poses = jnp.asarray(poses, dtype=jnp.float64)
+    if not is_concrete(designs, poses):
+        return run_batch(_design_row, (poses, smooth), designs, chunk=chunk)
+    designs = jax.tree.map(np.asarray, designs)
+    n = jax.tree.leaves(designs)[0].shape[0]
+    if n > chunk:  # whole chunks: the equal chunks run_batch cuts are then `chunk` designs
+        designs = _pad_rows(designs, -(-n // chunk) * chunk)
+    out = run_batch(_design_row, (poses, smooth), designs, chunk=chunk, min_rows=8)
+    return {k: np.asarray(v)[:n] for k, v in out.items()}
