@@ -36,6 +36,15 @@ threadpool_limits(limits=1, user_api="blas")
 BOX = np.array([100.0, 100.0, 50.0, np.deg2rad(7.5), np.deg2rad(7.5), np.deg2rad(10.0)])
 
 
+def quick_jit(fun, **kw):
+    """`jax.jit` compiling with the options jaxtable compiles its own programs with
+    (`_jit.compiler_options`, XLA's classic CPU emitters): a test's jitted check of a large
+    program compiles as quickly as the library's programs do."""
+    from jaxtable._jit import compiler_options
+
+    return jax.jit(fun, compiler_options=compiler_options(), **kw)
+
+
 @pytest.fixture(scope="session")
 def table():
     return jt.reference_table()

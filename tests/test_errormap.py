@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from conftest import random_poses
+from conftest import quick_jit, random_poses
 
 import jaxtable as jt
 from jaxtable._analysis.errormap import PoseList, _Histograms, error_map, workspace_slice
@@ -117,17 +117,15 @@ def test_reachable_cond_and_bias_against_independent_truth(table):
     np.testing.assert_array_equal(emap.reachable, np.asarray(jt.reachable(table, poses)))
     # condition number: numpy on the Jacobian of the actuator-side length (angles scaled)
     import jax
-    import jax.numpy as jnp
 
     from jaxtable import _kinematics as kin
 
     r = float(np.mean(np.linalg.norm(np.asarray(table.platform_joints), axis=1)))
+    jac = quick_jit(
+        jax.jacfwd(lambda q: kin.leg_lengths(table, q) - kin.spiral_extension(table, q))
+    )
     for k, p in enumerate(poses):
-        J = np.array(
-            jax.jacfwd(lambda q: kin.leg_lengths(table, q) - kin.spiral_extension(table, q))(
-                jnp.asarray(p)
-            )
-        )
+        J = np.array(jac(p))
         J[:, 3:] /= r
         assert emap.cond[k] == pytest.approx(np.linalg.cond(J), rel=1e-6)  # kept as float32
     # spiral bias: linearised; exact forward kinematics of the uncompensated command

@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import random_poses
+from conftest import quick_jit, random_poses
 
 import jaxtable as jt
 from jaxtable import _kinematics as kin
@@ -50,8 +50,9 @@ def test_compensation_lands_on_pose_and_uncompensated_does_not(table):
     err = raw - line
     assert np.abs(err[:, :3]).max() > 0.05  # the passive term moves the platform (mm)
     # first order, the error is the paper's eq. (21): Δq = J⁻¹ Δl2 (Euler increments)
+    jac = quick_jit(jax.jacfwd(lambda q: kin.leg_lengths(table, q)))
     for k in (0, 4, 12, 16):
-        J = np.asarray(jax.jacfwd(lambda q: kin.leg_lengths(table, q))(jnp.asarray(line[k])))
+        J = np.asarray(jac(line[k]))
         dl2 = np.asarray(jt.spiral_extension(table, line[k]))
         lin = np.linalg.solve(J, dl2)
         np.testing.assert_allclose(err[k], lin, atol=1e-2 * np.abs(lin).max() + 1e-12)
@@ -88,7 +89,7 @@ def test_forward_gradient_matches_finite_differences(table):
     def f(c):
         return jt.forward(table, c)
 
-    J = np.asarray(jax.jacfwd(f)(jnp.asarray(cmd)))
+    J = np.asarray(quick_jit(jax.jacfwd(f))(jnp.asarray(cmd)))  # eagerly: ~40 programs
     h = 1e-4
     Jfd = np.stack(
         [(np.asarray(f(cmd + h * e)) - np.asarray(f(cmd - h * e))) / (2 * h) for e in np.eye(6)],
@@ -101,7 +102,7 @@ def test_forward_gradient_matches_finite_differences(table):
         return kin.leg_lengths(table, q) - kin.spiral_extension(table, q)
 
     np.testing.assert_allclose(
-        J, np.linalg.inv(np.asarray(jax.jacfwd(g)(jnp.asarray(pose)))), rtol=1e-9, atol=1e-14
+        J, np.linalg.inv(np.asarray(quick_jit(jax.jacfwd(g))(pose))), rtol=1e-9, atol=1e-14
     )
 
 
@@ -122,15 +123,16 @@ def test_implicit_derivative_is_the_inverse_command_jacobian(table, chord_below)
     def f(x):
         return forward_one(table, eff, x, jnp.zeros(6), opts)[0]
 
-    q, result, steps, _ = forward_one(table, eff, s, jnp.zeros(6), opts)
+    # each under one jit: eagerly, the solve's loop and every op around it compile apart
+    q, result, steps, _ = quick_jit(lambda x: forward_one(table, eff, x, jnp.zeros(6), opts))(s)
     assert result == jt.RESULTS.successful and int(steps) >= 4  # several steps from home
     np.testing.assert_allclose(np.asarray(q), pose, atol=1e-9)
 
     def g(p):
         return kin.leg_lengths(table, p) - kin.spiral_extension(table, p)
 
-    truth = np.linalg.inv(np.asarray(jax.jacfwd(g)(jnp.asarray(pose))))
-    for J in (jax.jacfwd(f)(s), jax.jacrev(f)(s)):
+    truth = np.linalg.inv(np.asarray(quick_jit(jax.jacfwd(g))(pose)))
+    for J in (quick_jit(jax.jacfwd(f))(s), quick_jit(jax.jacrev(f))(s)):
         np.testing.assert_allclose(np.asarray(J), truth, rtol=1e-9, atol=1e-14)
 
 
@@ -144,7 +146,7 @@ def test_forward_gradient_wrt_table_parameters(table):
         return jt.forward(t, cmd)
 
     lead = np.asarray(table.lead)
-    J = np.asarray(jax.jacfwd(f)(jnp.asarray(lead)))
+    J = np.asarray(quick_jit(jax.jacfwd(f))(jnp.asarray(lead)))
     h = 1e-3
     Jfd = np.stack(
         [(np.asarray(f(lead + h * e)) - np.asarray(f(lead - h * e))) / (2 * h) for e in np.eye(6)],
@@ -276,8 +278,8 @@ def test_reverse_mode_through_forward(table):
         return jnp.sum(jt.forward(jt.replace(table, lead=lead), cmd) * jnp.arange(1.0, 7.0))
 
     # each under one jit: eagerly, grad and jacfwd ran the solve's pieces as ~40 programs
-    g = np.asarray(jax.jit(jax.grad(f))(table.lead))
-    np.testing.assert_allclose(g, np.asarray(jax.jit(jax.jacfwd(f))(table.lead)), rtol=1e-10)
+    g = np.asarray(quick_jit(jax.grad(f))(table.lead))
+    np.testing.assert_allclose(g, np.asarray(quick_jit(jax.jacfwd(f))(table.lead)), rtol=1e-10)
     assert np.abs(g).max() > 1e-3
 
 

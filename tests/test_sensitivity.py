@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import random_poses
+from conftest import quick_jit, random_poses
 
 import jaxtable as jt
 from jaxtable._analysis.sensitivities import (
@@ -98,7 +98,7 @@ def test_sensitivity_equals_jacfwd_through_newton_solve(table):
     def actual(lead, hand):
         return jt.forward(jt.replace(table, lead=lead, hand=hand), cmd)
 
-    Jl, Jh = jax.jacfwd(actual, argnums=(0, 1))(table.lead, table.hand)
+    Jl, Jh = quick_jit(jax.jacfwd(actual, argnums=(0, 1)))(table.lead, table.hand)
     J, _ = pose_sensitivity(table, pose, wrt=("lead", "hand"))
     np.testing.assert_allclose(np.asarray(J)[:, :6], np.asarray(Jl), rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(np.asarray(J)[:, 6:], np.asarray(Jh), rtol=1e-9, atol=1e-15)
