@@ -156,19 +156,42 @@ _INSTR = re.compile(
 )
 
 
+_COMPUTATION = re.compile(r"^\s*(?:ENTRY\s+)?%?([\w.\-]+)\s*\(")
+_CALLS = re.compile(r"\b(calls|body|condition|to_apply)=%?([\w.\-]+)")
+_TRIPS = re.compile(r'"known_trip_count":\{"n":"(\d+)"\}')
+
+
 def hlo_op_counts(text: str, batch: int) -> dict:
     """Operations per pose of a compiled program batched over `batch` poses, from its optimised
     HLO text: an element-wise op counts its output elements divided by the batch size (an op
     on (N, 6) is 6 per pose, on (N,) is 1); a reduction counts its input elements less its
     output's, a dot two per multiply-add. Ops without the batch as leading dimension are
-    per-table constants, evaluated once per batch, and not counted. Loops are counted once
-    (use it on loop-free programs)."""
-    counts = {"arith": 0.0, "sqrt": 0.0, "sin": 0.0, "cos": 0.0, "atan2": 0.0, "divide": 0.0}
+    per-table constants, evaluated once per batch, and not counted. Each computation counts
+    as often as it runs: a `while` loop's body times its known trip count (XLA's
+    `known_trip_count`; a loop without one counts once), its condition once more than that."""
+    own = {}  # computation -> its own counts
+    callees = {}  # computation -> [(called computation, times)]
+    entry = None
     shapes = {}  # instruction name -> dims, within the current computation
+    comp = None
     for line in text.splitlines():
         if line.rstrip().endswith("{"):  # a computation starts: names are local to it
+            m = _COMPUTATION.search(line)
+            comp = m.group(1) if m else line
+            if line.lstrip().startswith("ENTRY"):
+                entry = comp
+            own[comp] = dict.fromkeys(("arith", "sqrt", "sin", "cos", "atan2", "divide"), 0.0)
+            callees[comp] = []
             shapes = {}
             continue
+        if comp is None:
+            continue
+        # calls from any instruction, tuple-shaped ones (loops, multi-output fusions) too
+        trips = _TRIPS.search(line) if " while(" in line else None
+        n = int(trips.group(1)) if trips else 1
+        for kind, callee in _CALLS.findall(line):
+            times = {"body": n, "condition": n + 1 if trips else 1}.get(kind, 1)
+            callees[comp].append((callee, times))
         m = _INSTR.search(line)
         if not m:
             continue
@@ -181,6 +204,7 @@ def hlo_op_counts(text: str, batch: int) -> dict:
         if not dims or dims[0] != batch:
             continue  # per-table constants, evaluated once per batch
         out = math.prod(dims[1:])
+        counts = own[comp]
         if op in _ARITH:
             counts["arith"] += out
         elif op == "divide":
@@ -200,7 +224,16 @@ def hlo_op_counts(text: str, batch: int) -> dict:
             for k, names in _OPS.items():
                 if op in names:
                     counts[k] += out
-    return counts
+
+    def total(c, depth=0):
+        t = dict(own.get(c, {}))
+        for callee, times in callees.get(c, []):
+            if callee in own and depth < 64:
+                for k, v in total(callee, depth + 1).items():
+                    t[k] = t.get(k, 0.0) + times * v
+        return t
+
+    return total(entry)
 
 
 def kernel_op_counts(table: Table) -> dict:

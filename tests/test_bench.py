@@ -56,6 +56,17 @@ def test_hlo_op_counts_of_a_reduction_and_a_dot():
     assert hlo_op_counts(text, N)["arith"] == 72
 
 
+def test_hlo_op_counts_of_a_loop_count_its_body_per_trip():
+    """y ← y² + x, 17 and 40 times: a multiply and an add per trip (34 and 80 ops a pose);
+    the loop's counter and condition are scalars, not counted per pose."""
+    N = 512
+    for n in (17, 40):
+        f = jax.jit(jax.vmap(lambda x, n=n: jax.lax.fori_loop(0, n, lambda i, y: y * y + x, x)))
+        text = f.lower(jnp.zeros(N)).compile().as_text()
+        assert " while(" in text  # a loop, not unrolled by the compiler
+        assert hlo_op_counts(text, N)["arith"] == 2 * n
+
+
 @pytest.mark.slow
 def test_bench_cli_quick_writes_every_figure(tmp_path):
     from jaxtable.cli import main
