@@ -13,6 +13,7 @@ operations per pose (counted in the optimised HLO: arithmetic, sqrt, sin/cos, at
 each operation's throughput, measured here on large arrays over all cores.
 """
 
+import functools
 import json
 import math
 import os
@@ -225,12 +226,13 @@ def hlo_op_counts(text: str, batch: int) -> dict:
                 if op in names:
                     counts[k] += out
 
-    def total(c, depth=0):
-        t = dict(own.get(c, {}))
-        for callee, times in callees.get(c, []):
-            if callee in own and depth < 64:
-                for k, v in total(callee, depth + 1).items():
-                    t[k] = t.get(k, 0.0) + times * v
+    @functools.cache  # a computation's total: its own ops and its callees', as often as called
+    def total(c):
+        t = dict(own[c])
+        for callee, times in callees[c]:
+            if callee in own:
+                for k, v in total(callee).items():
+                    t[k] += times * v
         return t
 
     return total(entry)

@@ -274,7 +274,7 @@ def forward_solve(
     shared_guess, row_guess = (guess, None) if guess.ndim == 1 else (None, guess)
     large = n >= LARGE_BATCH  # smaller batches: plain Newton, the quickest to compile
     if options.peel_first_step is None:  # one first step for the batch (see ForwardOptions)
-        options = dataclasses.replace(options, peel_first_step=large and guess.ndim == 1)
+        options = dataclasses.replace(options, peel_first_step=large and shared_guess is not None)
     if options.chord_below is None:
         options = dataclasses.replace(options, chord_below=CHORD_BELOW if large else 0.0)
     shared_ctx, row_ctx = split_context(n, context)

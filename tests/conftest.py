@@ -1,3 +1,4 @@
+import contextlib
 import os
 from pathlib import Path
 
@@ -43,6 +44,25 @@ def quick_jit(fun, **kw):
     from jaxtable._jit import compiler_options
 
     return jax.jit(fun, compiler_options=compiler_options(), **kw)
+
+
+@contextlib.contextmanager
+def compiled_programs():
+    """The names of the programs compiled (or read from the persistent cache) inside the
+    `with` block, as JAX's compile events report them, e.g. "jit(_vmap__design_row)"."""
+    import jax.monitoring
+
+    names = []
+
+    def listen(event, duration, fun_name="?", **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            names.append(fun_name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield names
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
 
 
 @pytest.fixture(scope="session")

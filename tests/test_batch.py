@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import random_poses
+from conftest import compiled_programs, random_poses
 
 import jaxtable as jt
 from jaxtable._batch import run_batch
@@ -38,7 +38,6 @@ def test_small_batches_share_a_compiled_size_and_lose_no_row():
     a caller's `min_rows`, at most the chunk) under LARGE_BATCH rows, to a multiple of
     chunk/16 above; several chunks are equal multiples of chunk/16. Sizes by hand; 1, 150
     and 200 rows then run one compiled program, every row equal to the plain vmap."""
-    import jax.monitoring
 
     from jaxtable._batch import SMALL_BATCH, chunk_rows
 
@@ -62,24 +61,15 @@ def test_small_batches_share_a_compiled_size_and_lose_no_row():
     assert chunk_rows(3, 6, n_dev=4) == 8  # a multiple of the device count
     assert chunk_rows(3, 1 << 16, n_dev=3, min_rows=8) == 9
 
-    compiles = []
-
-    def listen(event, duration, **kw):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(kw.get("fun_name"))
-
     def odd(shared, row):  # a function no other test batches: its compiles are this test's
         return jnp.cos(row) * shared
 
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with compiled_programs() as compiles:
         for n in (1, 150, 200):
             x = np.random.default_rng(n).normal(size=(n, 3))
             got = np.asarray(run_batch(odd, jnp.asarray(1.5), x))
             assert got.shape == (n, 3)
             np.testing.assert_allclose(got, np.cos(x) * 1.5, rtol=1e-14, atol=1e-15)
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
     assert compiles.count("jit(_vmap)") == 1, compiles
 
 

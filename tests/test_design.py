@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import quick_jit
+from conftest import compiled_programs, quick_jit
 
 import jaxtable as jt
 from jaxtable._design.criteria import _soft_max, _soft_min, leg_matrix, pose_criteria
@@ -226,27 +226,16 @@ def test_stacks_of_any_size_share_few_compiled_programs(design):
     stacks of 3 and 70 designs compile two programs (8 and 64 designs), then 5 and 130
     designs compile nothing. Every design's criteria equal `design_criteria` of that design
     alone, the last one of each stack (repeated as padding) included."""
-    import jax.monitoring
-
-    compiles = []
-
-    def listen(event, duration, fun_name="?", **_):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(fun_name)
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
     poses = jnp.asarray(jt.design_poses(None, n_sweep=5, n_random=16, box=2))  # as below
     heights = {n: np.linspace(450.0, 850.0, n) for n in (3, 70, 5, 130)}
-    try:
-        out = {}
+    out = {}
+    with compiled_programs() as compiles:
         for n, hs in heights.items():
             if n == 5:
                 assert compiles.count("jit(_vmap__design_row)") == 2, compiles
             out[n] = jt.assess_designs(
                 stack([set_values(design, {"home_height": h}) for h in hs]), poses
             )
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
     assert compiles.count("jit(_vmap__design_row)") == 2, compiles
     for n in (3, 70, 130):
         for i in (0, n // 2, n - 1):
