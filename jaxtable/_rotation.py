@@ -3,6 +3,7 @@
 import math
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._linalg import computed_once
@@ -101,12 +102,13 @@ def euler_rate_inverse(angles: Float[ArrayLike, "3"]) -> Float[ArrayLike, "3 3"]
 
 def euler_from_matrix(R: Float[ArrayLike, "3 3"]) -> Float[ArrayLike, "3"]:
     """(roll, pitch, yaw) of R = Rz(yaw) Ry(pitch) Rx(roll), rad, shape (3,); the inverse of
-    `rotation_matrix` for pitch in (−π/2, π/2)."""
-    return jnp.stack(
+    `rotation_matrix` for pitch in (−π/2, π/2). numpy in, numpy out."""
+    xp = np if isinstance(R, np.ndarray) else jnp
+    return xp.stack(
         [
-            jnp.arctan2(R[2, 1], R[2, 2]),
-            -jnp.arcsin(jnp.clip(R[2, 0], -1.0, 1.0)),
-            jnp.arctan2(R[1, 0], R[0, 0]),
+            xp.arctan2(R[2, 1], R[2, 2]),
+            -xp.arcsin(xp.clip(R[2, 0], -1.0, 1.0)),
+            xp.arctan2(R[1, 0], R[0, 0]),
         ]
     )
 
@@ -139,9 +141,11 @@ def pose_error(
     return jnp.concatenate([actual[:3] - commanded[:3], rotation_log(D)])
 
 
-def wrap_reading_difference(diff: Float[ArrayLike, "... 6"]) -> Float[Array, "... 6"]:
+def wrap_reading_difference(diff: Float[ArrayLike, "... 6"]) -> Float[ArrayLike, "... 6"]:
     """A difference of two readings (..., 6) (x, y, z, roll, pitch, yaw; mm / rad) with its
-    angle columns wrapped to [−π, π): a residual of Euler-angle columns."""
-    diff = jnp.asarray(diff)
-    angles = jnp.mod(diff[..., 3:] + jnp.pi, 2 * jnp.pi) - jnp.pi
-    return jnp.concatenate([diff[..., :3], angles], axis=-1)
+    angle columns wrapped to [−π, π): a residual of Euler-angle columns. numpy in, numpy
+    out (no compiled program for a host array)."""
+    xp = np if isinstance(diff, np.ndarray) else jnp
+    diff = xp.asarray(diff)
+    angles = xp.mod(diff[..., 3:] + np.pi, 2 * np.pi) - np.pi
+    return xp.concatenate([diff[..., :3], angles], axis=-1)

@@ -101,7 +101,7 @@ def test_leg_force_and_motor_duty_by_hand_at_home(design):
     # (compression); with a = 0 and ω = 0: rpm = 60 v / lead; torque = F lead / (2π η).
     table = design.table()
     hw = jt.hardware_for(table, acceleration=0.0, angular_velocity_deg=0.0, velocity=150.0)
-    q = pose_criteria(table, hw, jnp.zeros(6))
+    q = quick_jit(lambda p: pose_criteria(table, hw, p))(jnp.zeros(6))
     u = np.asarray(jt.leg_lengths(table, jnp.zeros(6)))
     uz = float(table.home_height) / u[0]
     m = float(hw.moving_mass(table))
@@ -119,7 +119,7 @@ def test_acceleration_adds_the_worst_direction_force(design):
     hw0 = jt.hardware_for(table, acceleration=0.0)
     hw = jt.hardware_for(table, acceleration=7.0)
     pose = jnp.array([30.0, -20.0, 10.0, 0.05, -0.03, 0.1])
-    q = pose_criteria(table, hw, pose)
+    q = quick_jit(lambda p: pose_criteria(table, hw, p))(pose)
     J = np.asarray(leg_matrix(table, pose))
     f0 = np.asarray(jt.leg_forces(table, pose, hw0.payload))
     m = float(hw.moving_mass(table))

@@ -525,6 +525,40 @@ def test_model_file_round_trip(table, sessions, tmp_path):
     assert jt.load_table(path).name == table.name  # any verb's --table reads it
 
 
+def test_frame_registration_recovers_a_known_frame_with_rows_padded(table, monkeypatch):
+    """`register_frame` on noise-free readings of random poses through FRAME_B and TARGET
+    (`observe`, one pose at a time): the frame back to 1e-9 from a start 5 mm / 0.6° off,
+    for 9 and 13 rows (both solved as 16, the extra rows at zero weight: one compiled
+    program) and with a lost cell in each column; `readings` (the batched form) equals
+    `observe` row by row."""
+    from conftest import quick_jit, random_poses
+
+    from jaxtable._calibration import validate as v
+    from jaxtable._calibration.instruments import observe, readings
+
+    poses = random_poses(13, seed=4)
+    frame, target = np.asarray(FRAME_B), np.asarray(TARGET)
+    one = quick_jit(observe)
+    meas = np.stack([np.asarray(one(q, frame, target)) for q in poses])
+    batched = readings(poses, np.broadcast_to(frame, poses.shape), target)
+    np.testing.assert_allclose(batched, meas, rtol=0, atol=1e-12)
+    shapes = []
+    register = v._register
+
+    def spy(q, *args):
+        shapes.append(q.shape)
+        return register(q, *args)
+
+    monkeypatch.setattr(v, "_register", spy)
+    start = frame + np.array([5.0, -5.0, 5.0, 0.01, -0.01, 0.01])
+    lost = meas.copy()
+    lost[np.arange(6), np.arange(6)] = np.nan
+    for q, m in ((poses[:9], meas[:9]), (poses, meas), (poses, lost)):
+        got = v.register_frame(q, m, target, range(6), start, 300.0)
+        np.testing.assert_allclose(got, frame, rtol=0, atol=1e-9)
+    assert shapes == [(16, 6)] * 3
+
+
 def test_validate_predicts_a_new_session_after_registering_its_frame(table, sessions, tmp_path):
     true, a, b, cal = sessions
     model = jt.fitted_model(cal, table, a.sessions)

@@ -1,3 +1,4 @@
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -109,3 +110,30 @@ def test_euler_rate_inverse_is_the_inverse():
         np.testing.assert_allclose(
             np.asarray(euler_rate_inverse(np.array(angles))), np.linalg.inv(E), atol=1e-14
         )
+
+
+def test_wrapped_reading_difference_in_numpy_equals_the_jax_form():
+    """Angle columns wrapped into [−π, π), positions untouched; a host array in gives a
+    host array out with the same numbers as the jax form."""
+    from jaxtable._rotation import wrap_reading_difference
+
+    d = np.array([[1.0, -2.0, 3.0, 0.1, 3.5, -7.0], [0.0, 0.0, 0.0, -np.pi, np.pi, 2 * np.pi]])
+    want = d.copy()
+    want[:, 3:] = [[0.1, 3.5 - 2 * np.pi, -7.0 + 2 * np.pi], [-np.pi, -np.pi, 0.0]]
+    host = wrap_reading_difference(d)
+    assert isinstance(host, np.ndarray)
+    np.testing.assert_allclose(host, want, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(wrap_reading_difference(jnp.asarray(d))), host, atol=0)
+
+
+def test_euler_angles_of_a_host_matrix_in_numpy():
+    """`euler_from_matrix` of a numpy matrix is numpy, the inverse of `rotation_matrix`, and
+    equals the jax form."""
+    from jaxtable._rotation import euler_from_matrix, rotation_matrix
+
+    a = np.array([0.3, -1.2, 2.9])
+    R = np.asarray(rotation_matrix(jnp.asarray(a)))
+    host = euler_from_matrix(R)
+    assert isinstance(host, np.ndarray)
+    np.testing.assert_allclose(host, a, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(euler_from_matrix(jnp.asarray(R))), host, atol=1e-15)

@@ -131,10 +131,12 @@ def test_closed_form_budget_blocks_equal_autodiff(table, perturbed):
     t = _perturbed_table(table, 7) if perturbed else table
     eff = budget_effects(t)
     widths = [3, 3, 1, 1, 1]  # columns per leg of each BUDGET_WRT leaf
+    blocks = quick_jit(budget_jacobians_one)
+    autodiff = quick_jit(lambda p: jacobians_one(t, eff, p, BUDGET_WRT))
     for pose in random_poses(4, seed=11):
         pose = jnp.asarray(pose)
-        s, K, gains, spiral = (np.asarray(x) for x in budget_jacobians_one(t, pose))
-        Jq, Jt = (np.asarray(x) for x in jacobians_one(t, eff, pose, BUDGET_WRT))
+        s, K, gains, spiral = (np.asarray(x) for x in blocks(t, pose))
+        Jq, Jt = (np.asarray(x) for x in autodiff(pose))
         Jq_cf = K.copy()
         Jq_cf[:, 3:] = K[:, 3:] @ np.asarray(euler_rate_matrix(pose[3:]))
         np.testing.assert_allclose(Jq_cf, Jq, rtol=0, atol=1e-12 * np.abs(Jq).max())

@@ -388,7 +388,7 @@ def initial_frames(data: Measurements, frame_dofs, predicted=None) -> np.ndarray
         if len(frame_dofs) == 6 and complete.sum() >= 3:
             R, t = _kabsch(P[complete], Q[complete])
             out[k, :3] = t
-            out[k, 3:] = np.asarray(euler_from_matrix(jnp.asarray(R)))
+            out[k, 3:] = euler_from_matrix(R)
         else:
             for c in frame_dofs:
                 if c < 3 and np.isfinite(Q[:, c]).any():

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
+from .._batch import run_batch
 from .._rotation import ARCSEC_PER_RAD, euler_from_matrix, rotation_matrix
 
 
@@ -27,6 +28,18 @@ def observe(pose, frame, target):
     pos = RF @ (pose[:3] + R @ target[:3]) + frame[:3]
     ang = euler_from_matrix(RF @ R @ rotation_matrix(target[3:]))
     return jnp.concatenate([pos, ang])
+
+
+def _reading_row(target, row):
+    pose, frame = row
+    return observe(pose, frame, target)
+
+
+def readings(poses, frames, target):
+    """Full readings (M, 6) of `target` (6,) at platform poses (M, 6) through instrument
+    frames (M, 6): `observe` row by row, through `run_batch` (one compiled program per row
+    bucket where the inputs are concrete, numpy out; a `vmap` inside a trace)."""
+    return run_batch(_reading_row, target, (poses, frames))
 
 
 @dataclass(frozen=True)

@@ -34,12 +34,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _params as params
+from .._batch import run_batch
 from .._forward import platform_radius
 from .._jit import jit
 from .._table import Table
 from .._threads import one_blas_thread
 from .fit import Layout, jacobian_in_chunks, make_problem, setup, zero_steps
-from .instruments import Instrument, observe
+from .instruments import Instrument, observe, readings
 from .measurements import Measurements
 from .simulate import plan_random
 
@@ -136,9 +137,7 @@ def pose_jacobians(
     tgt = np.zeros(6) if target is None else np.asarray(target, float)
     if tgt.shape != (6,):
         raise ValueError(f"target must have shape (6,), got {tgt.shape}")
-    reading = np.asarray(
-        jax.vmap(lambda q: observe(q, jnp.zeros(6), jnp.asarray(tgt)))(jnp.asarray(poses))
-    )
+    reading = np.asarray(readings(poses, np.zeros_like(poses), tgt))
     noise = np.asarray(instrument.noise, float)
     data = Measurements(
         poses,
@@ -443,6 +442,11 @@ def pose_sensitivities(jac: PoseJacobians, poses) -> np.ndarray:
     return out
 
 
+def _frame_target_jacobian(_, q):
+    """d reading / d (frame, target) (6, 12) at platform pose `q` (6,), both at zero."""
+    return jax.jacfwd(lambda ft: observe(q, ft[:6], ft[6:]))(jnp.zeros(12))
+
+
 def rigid_projector(poses, radius: float) -> np.ndarray:
     """(Q·6, Q·6) projector that removes from pose errors at `poses` (Q, 6) the part a
     constant base-frame and platform-target transform explains (to first order), in the
@@ -450,11 +454,7 @@ def rigid_projector(poses, radius: float) -> np.ndarray:
     table's motion: what an instrument in an unknown frame, tracking an unknown target, can
     see, and what an IMU test (relative motions) depends on."""
     poses = _check_poses(poses, "poses")
-
-    def one(q):
-        return jax.jacfwd(lambda ft: observe(q, ft[:6], ft[6:]))(jnp.zeros(12))
-
-    T = np.asarray(jax.vmap(one)(jnp.asarray(poses))).reshape(-1, 12)
+    T = np.asarray(run_batch(_frame_target_jacobian, None, poses)).reshape(-1, 12)
     w = np.tile(np.array([1.0] * 3 + [radius] * 3), len(poses))
     Tw = T * w[:, None]
     # P = I − T (TᵀWᵀWT)⁻¹ TᵀWᵀW, written with the weighted T

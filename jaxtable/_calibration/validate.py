@@ -14,7 +14,6 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
@@ -22,6 +21,7 @@ import optimistix as optx
 
 from .. import _params as params
 from .._api import forward_solve
+from .._batch import _pad_rows, run_batch
 from .._effects import resolve_effects
 from .._forward import platform_radius
 from .._jit import jit
@@ -38,7 +38,7 @@ from .fit import (
     used_columns,
 )
 from .fit import validate as column_rms
-from .instruments import observe
+from .instruments import readings
 from .measurements import Measurements, check_alignment, check_units
 from .model_file import FittedModel, load_fitted_model
 
@@ -88,31 +88,34 @@ class Validation:
 
 
 @jit
-def _readings(q, frames, target):
-    return jax.vmap(observe, in_axes=(0, 0, None))(q, frames, target)
+def _register(q, m, w, E, start, target):
+    def resid(p, _):
+        frame = start + E @ p
+        r = readings(q, jnp.broadcast_to(frame, q.shape), target) - m
+        return (wrap_reading_difference(r) * w).reshape(-1)
+
+    solver = optx.GaussNewton(rtol=1e-10, atol=1e-10, linear_solver=lx.SVD(rcond=1e-9))
+    sol = optx.least_squares(resid, solver, jnp.zeros(E.shape[1]), max_steps=50, throw=False)
+    return start + E @ sol.value
 
 
 def register_frame(q, measured, target, dofs, start, radius: float) -> np.ndarray:
     """Instrument frame (6,) that best maps the model's poses `q` (M, 6) with `target` to
     the `measured` readings (M, 6, NaN = not measured), over the frame components `dofs`,
     from `start` (6,). Least squares with angles as mm of arc at `radius` (Gauss-Newton,
-    truncated-SVD steps, so components the rows cannot determine stay at `start`)."""
+    truncated-SVD steps, so components the rows cannot determine stay at `start`), one
+    compiled program for every M up to the next power of two (rows padded with zero
+    weight)."""
+    q = np.asarray(q, float)
     mask = np.isfinite(measured)
     w = np.where(mask, 1.0, 0.0) * np.array([1.0] * 3 + [radius] * 3)
     m = np.where(mask, measured, 0.0)
+    rows = max(8, 1 << (len(q) - 1).bit_length())
+    q, m = _pad_rows(q, rows), _pad_rows(m, rows)
+    w = np.concatenate([w, np.zeros((rows - len(w), 6))])
     E = np.eye(6)[:, list(dofs)]
-    q, m, w, E = (jnp.asarray(x) for x in (q, m, w, E))
-    start, target = jnp.asarray(start), jnp.asarray(target)
-
-    def resid(p, _):
-        frame = start + E @ p
-        r = _readings(q, jnp.broadcast_to(frame, q.shape), target) - m
-        r = wrap_reading_difference(r)
-        return (r * w).reshape(-1)
-
-    solver = optx.GaussNewton(rtol=1e-10, atol=1e-10, linear_solver=lx.SVD(rcond=1e-9))
-    sol = optx.least_squares(resid, solver, jnp.zeros(len(dofs)), max_steps=50, throw=False)
-    return np.asarray(start + E @ sol.value)
+    start, target = np.asarray(start, float), np.asarray(target, float)
+    return np.asarray(_register(q, m, w, E, start, target))
 
 
 def _measured_pose(reading, frame, target):
@@ -122,6 +125,14 @@ def _measured_pose(reading, frame, target):
     Rq = RF.T @ Rm @ rotation_matrix(target[3:]).T
     t = RF.T @ (reading[:3] - frame[:3]) - Rq @ target[:3]
     return jnp.concatenate([t, euler_from_matrix(Rq)])
+
+
+def _leg_residual_row(shared, row):
+    """Leg-length residual (6,) of the fitted model at the pose a reading (6,) through its
+    frame (6,) says the platform took, for the stop's extensions (6,) and context."""
+    table, effects, target = shared
+    reading, frame, s, ctx = row
+    return length_residual(table, effects, _measured_pose(reading, frame, target), s, ctx)
 
 
 def validate_model(
@@ -170,7 +181,7 @@ def validate_model(
     registered = np.zeros(n, bool)
     info = {}
     radius = float(platform_radius(table))
-    base_reading = np.asarray(_readings(jnp.asarray(q), jnp.zeros((n, 6)), jnp.asarray(target)))
+    base_reading = np.asarray(readings(q, np.zeros((n, 6)), target))
     for label in data.sessions:
         rows = np.flatnonzero(data.session == label)
         if ins is not None and label in ins.frames:
@@ -189,8 +200,8 @@ def validate_model(
             info[label] = {"source": "registered", "rows_registered": int(len(use))}
         frames[rows] = frame
         info[label]["pose"] = [float(v) for v in params.pose_to_file(frame)]
-    reading = np.asarray(_readings(jnp.asarray(q), jnp.asarray(frames), jnp.asarray(target)))
-    residual = np.where(mask, np.asarray(wrap_reading_difference(measured - reading)), np.nan)
+    reading = np.asarray(readings(q, frames, target))
+    residual = np.where(mask, wrap_reading_difference(measured - reading), np.nan)
     measured_rows = mask.any(axis=1)
     predicted = measured_rows & ~registered
     scored = predicted if predicted.any() else (measured_rows & registered)
@@ -209,11 +220,12 @@ def validate_model(
     leg_residual = leg_rms = None
     if mask[scored].all():
         full = mask.all(axis=1)
-        qm = jax.vmap(_measured_pose, in_axes=(0, 0, None))(
-            jnp.asarray(np.where(mask, measured, 0.0)), jnp.asarray(frames), jnp.asarray(target)
+        s = cmd - np.asarray(model.controller_zero_lengths)
+        lr = run_batch(
+            _leg_residual_row,
+            (table, effects, target),
+            (np.where(mask, measured, 0.0), frames, s, ctx),
         )
-        s = jnp.asarray(cmd - model.controller_zero_lengths)
-        lr = jax.vmap(lambda qq, ss, c: length_residual(table, effects, qq, ss, c))(qm, s, ctx)
         leg_residual = np.where(full[:, None], np.asarray(lr), np.nan)
         leg_rms = float(np.sqrt(np.mean(leg_residual[scored] ** 2)))
     return Validation(

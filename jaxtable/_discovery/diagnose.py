@@ -891,13 +891,17 @@ def _final_gross_errors(diag: "Diagnosis") -> list:
 
 
 @jit
-def _leg_lengths_jvp(table, poses, dq):
-    """(N, 6) (∂L/∂q) δq at each pose (N, 6) for pose changes δq (N, 6)."""
+def _leg_lengths_jvp(table, poses, dq, frames):
+    """(N, 6) (∂L/∂q) δq at each pose (N, 6) for pose changes δq (N, 6) read in instrument
+    frames (N, 6): the translation is rotated back to the base frame first."""
     from .._kinematics import leg_lengths
+    from .._rotation import rotation_matrix
 
-    return jax.vmap(lambda q, d: jax.jvp(lambda qq: leg_lengths(table, qq), (q,), (d,))[1])(
-        poses, dq
-    )
+    def one(q, d, frame):
+        d = jnp.concatenate([rotation_matrix(frame[3:]).T @ d[:3], d[3:]])
+        return jax.jvp(lambda qq: leg_lengths(table, qq), (q,), (d,))[1]
+
+    return jax.vmap(one)(poses, dq, frames)
 
 
 # (N,) poses and payloads -> (N, 6) static leg forces, N (one compiled program per shape)
@@ -910,8 +914,6 @@ def leg_residuals(diag: Diagnosis, cal: Calibration) -> np.ndarray | None:
     fitted table at the commanded pose (the fitted pose differs from it by at most a few
     tenths of a mm, which changes ∂L/∂q by a relative ~1e-6: far below the residual's own
     precision). Needs all six columns measured (a 6-D tracker); None otherwise."""
-    from .._rotation import rotation_matrix
-
     st = diag.setup
     if not st.mask.all():
         return None
@@ -919,9 +921,7 @@ def leg_residuals(diag: Diagnosis, cal: Calibration) -> np.ndarray | None:
     sigma = np.where(st.mask, 1.0 / np.asarray(problem.weight), 0.0)
     dq = -cal.residual * sigma  # measured − model
     frame = cal.frame[np.asarray(problem.session)]
-    RF = np.asarray(jax.vmap(rotation_matrix)(jnp.asarray(frame[:, 3:])))
-    dq[:, :3] = np.einsum("nji,nj->ni", RF, dq[:, :3])
-    return np.asarray(_leg_lengths_jvp(cal.table, problem.guess, jnp.asarray(dq)))
+    return np.asarray(_leg_lengths_jvp(cal.table, problem.guess, dq, frame))
 
 
 def signatures(diag: Diagnosis) -> dict:
