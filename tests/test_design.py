@@ -120,8 +120,8 @@ def test_acceleration_adds_the_worst_direction_force(design):
     hw = jt.hardware_for(table, acceleration=7.0)
     pose = jnp.array([30.0, -20.0, 10.0, 0.05, -0.03, 0.1])
     q = quick_jit(lambda p: pose_criteria(table, hw, p))(pose)
-    J = np.asarray(leg_matrix(table, pose))
-    f0 = np.asarray(jt.leg_forces(table, pose, hw0.payload))
+    J = np.asarray(quick_jit(lambda p: leg_matrix(table, p))(pose))
+    f0 = np.asarray(quick_jit(lambda p: jt.leg_forces(table, p, hw0.payload))(pose))
     m = float(hw.moving_mass(table))
     dirs = np.random.default_rng(0).normal(size=(200000, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -135,12 +135,12 @@ def test_lci_is_one_over_the_frobenius_condition_number_of_the_scaled_jacobian(d
     table = design.table()
     hw = design.hardware
     pose = jnp.array([50.0, 20.0, -30.0, 0.1, 0.05, -0.2])
-    J = np.asarray(leg_matrix(table, pose))
+    J = np.asarray(quick_jit(lambda p: leg_matrix(table, p))(pose))
     ell = float(hw.characteristic_length)
     Jh = J * np.r_[np.ones(3), np.full(3, 1 / ell)]
     sv = np.linalg.svd(Jh, compute_uv=False)
     kappa_f = np.sqrt(np.sum(sv**2) * np.sum(sv**-2)) / 6  # ‖J‖_F ‖J⁻¹‖_F / n by SVD
-    lci = float(pose_criteria(table, hw, pose)["lci"])
+    lci = float(quick_jit(lambda p: pose_criteria(table, hw, p))(pose)["lci"])
     assert lci == pytest.approx(1 / kappa_f, rel=1e-10)
     assert sv[-1] / sv[0] <= lci <= 6 * sv[-1] / sv[0]  # between 1/κ₂ and n/κ₂
     # the cube at its centre, ℓ = a/2: JᵀJ = diag(2, 2, 2, a²/2, a²/2, 2a²) scaled by 1/ℓ² in
@@ -149,7 +149,8 @@ def test_lci_is_one_over_the_frobenius_condition_number_of_the_scaled_jacobian(d
     cube, _ = _cube_table(a)
     hw_cube = jt.Hardware(1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.9, a / 2)
     expected = 6 / math.sqrt((2 * 5 + 8) * (5 / 2 + 1 / 8))
-    assert float(pose_criteria(cube, hw_cube, jnp.zeros(6))["lci"]) == pytest.approx(expected)
+    at_centre = quick_jit(lambda p: pose_criteria(cube, hw_cube, p))(jnp.zeros(6))
+    assert float(at_centre["lci"]) == pytest.approx(expected)
 
 
 # ---------------------------------------------------------------- gradients and smoothing
