@@ -21,10 +21,10 @@ import optimistix as optx
 
 from .. import _params as params
 from .._api import forward_solve
-from .._batch import _pad_rows, run_batch
+from .._batch import _pad_rows, chunk_rows, run_batch
 from .._effects import resolve_effects
 from .._forward import platform_radius
-from .._jit import jit
+from .._jit import LARGE_BATCH, jit
 from .._model import length_residual
 from .._rotation import euler_from_matrix, rotation_matrix, wrap_reading_difference
 from .._table import Table, replace
@@ -104,13 +104,13 @@ def register_frame(q, measured, target, dofs, start, radius: float) -> np.ndarra
     the `measured` readings (M, 6, NaN = not measured), over the frame components `dofs`,
     from `start` (6,). Least squares with angles as mm of arc at `radius` (Gauss-Newton,
     truncated-SVD steps, so components the rows cannot determine stay at `start`), one
-    compiled program for every M up to the next power of two (rows padded with zero
-    weight)."""
+    compiled program for every M up to the next power of two (`run_batch`'s row buckets;
+    rows padded with zero weight)."""
     q = np.asarray(q, float)
     mask = np.isfinite(measured)
     w = np.where(mask, 1.0, 0.0) * np.array([1.0] * 3 + [radius] * 3)
     m = np.where(mask, measured, 0.0)
-    rows = max(8, 1 << (len(q) - 1).bit_length())
+    rows = chunk_rows(len(q), max(len(q), LARGE_BATCH), min_rows=8)  # run_batch's buckets
     q, m = _pad_rows(q, rows), _pad_rows(m, rows)
     w = np.concatenate([w, np.zeros((rows - len(w), 6))])
     E = np.eye(6)[:, list(dofs)]
