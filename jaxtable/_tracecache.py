@@ -32,6 +32,7 @@ import io
 import os
 import pickle
 import sys
+import threading
 import types
 from pathlib import Path
 
@@ -51,6 +52,8 @@ _TRUSTED += ("functools", "collections", "operator", "math", "typing", "enum", "
 
 _MEMORY: dict = {}  # key -> (compiled caller, output structure): one process's programs
 _REFUSED: set = set()  # keys whose program could not be exported
+_LOCKS: dict = {}  # key -> lock held while its program is loaded or traced
+_GUARD = threading.Lock()  # guards _LOCKS
 
 
 def directory() -> Path | None:
@@ -238,6 +241,32 @@ def _store(folder: Path, path: Path, exported, out) -> None:
         pass
 
 
+def _entry(key: str, fun, static, treedef, leaves, options: dict, folder: Path):
+    """The (caller, output template) of `key`, loaded or traced and stored, or None where the
+    program cannot be exported. One thread at a time per key: the per-core pieces of a batch
+    (`_batch._Part`) call the same new program at once, and each would trace it and compile
+    its own caller (JAX compiles one jitted function once for threads that call it at once,
+    but these would be two functions)."""
+    with _GUARD:
+        lock = _LOCKS.setdefault(key, threading.Lock())
+    with lock:
+        entry = _MEMORY.get(key)
+        if entry is not None or key in _REFUSED:
+            return entry
+        path, name = folder / f"{key}{SUFFIX}", _name(fun, static)
+        entry = _load(path, options, name)
+        if entry is None:
+            try:
+                exported, out = _export(fun, static, treedef, leaves, options)
+            except Exception:  # not exportable (e.g. a host callback): trace as usual
+                _REFUSED.add(key)
+                return None
+            _store(folder, path, exported, out)
+            entry = _caller(exported, options, name), out
+        _MEMORY[key] = entry
+        return entry
+
+
 def call(fun, options: dict, args: tuple, kwargs: dict, plain):
     """`fun(*args, **kwargs)` through its stored traced program (exported and stored on
     first use), or `plain()` (the usual compiled call) where the module docstring says."""
@@ -251,21 +280,9 @@ def call(fun, options: dict, args: tuple, kwargs: dict, plain):
     if static_bytes is None or any(_sharded(x) for x in leaves):
         return plain()
     key = _key(fun, options, leaves, static_bytes)
-    entry = _MEMORY.get(key)
+    entry = _MEMORY.get(key) or _entry(key, fun, static, treedef, leaves, options, folder)
     if entry is None:
-        if key in _REFUSED:
-            return plain()
-        path, name = folder / f"{key}{SUFFIX}", _name(fun, static)
-        entry = _load(path, options, name)
-        if entry is None:
-            try:
-                exported, out = _export(fun, static, treedef, leaves, options)
-            except Exception:  # not exportable (e.g. a host callback): trace as usual
-                _REFUSED.add(key)
-                return plain()
-            _store(folder, path, exported, out)
-            entry = _caller(exported, options, name), out
-        _MEMORY[key] = entry
+        return plain()
     run, template = entry
     # as host arrays: a device array's placement (committed or not) is part of the stored
     # program's call signature, and a second placement compiled the program again

@@ -26,6 +26,9 @@ import numpy as np  # noqa: E402
 
 import jaxtable as jt  # noqa: E402
 
+# the compilation cache the tests share ($JAXTABLE_CACHE_DIR, set by conftest.py): a repeat
+# run reads this worker's programs instead of compiling them again
+jt.enable_compilation_cache()
 table = jt.reference_table()
 rng = np.random.default_rng(7)
 box = np.array([100.0, 100.0, 50.0, 0.1, 0.1, 0.15])

@@ -187,7 +187,13 @@ def test_command_map_summary_matches_direct_evaluation(table):
     spiral = np.abs(np.asarray(jt.spiral_extension(table, poses)))
     reach = np.asarray(jt.reachable(table, poses))
     assert reach.any()
-    m, s = jt.command_map(table, grid, keep=True, chunk=10)  # 7 chunks, last one short
+    # 7 chunks, last one short, computed ahead on the pool's threads (`stream_batch`): the
+    # new program is traced and compiled once, not once per thread that first meets it
+    # (the traced-program cache, `_tracecache`, is on in the tests; no other test maps
+    # chunks of 10 with this kernel)
+    with compiled_programs() as compiles:
+        m, s = jt.command_map(table, grid, keep=True, chunk=10)
+    assert compiles.count("jit(_vmap__command_map_row)") == 1, compiles
     assert s["poses"] == 63 and s["reachable"] == int(reach.sum())
     np.testing.assert_allclose(s["command_min_mm"], cmd[reach].min(0), atol=1e-9)
     np.testing.assert_allclose(s["command_max_mm"], cmd[reach].max(0), atol=1e-9)

@@ -60,6 +60,14 @@ def _hardware(table, name, index, h):
     return jt.replace(table, **{name: leaf})
 
 
+@pytest.fixture(scope="module")
+def fd_pose_sens(table):
+    """The sensitivity to every leaf the finite-difference test perturbs, in one call."""
+    pose = np.array([-150.0, 60.0, 20.0, 0.06, -0.05, 0.1])
+    wrt = ("base_joints", "platform_joints", "zero_lengths", "platform_axes", "lead")
+    return (pose, *pose_sensitivity(table, pose, wrt=wrt))
+
+
 @pytest.mark.parametrize(
     "name, index",
     [
@@ -70,12 +78,11 @@ def _hardware(table, name, index, h):
         ("lead", (3,)),
     ],
 )
-def test_sensitivity_equals_finite_differences_of_exact_forward(table, name, index):
+def test_sensitivity_equals_finite_differences_of_exact_forward(table, fd_pose_sens, name, index):
     """The controller commands the nominal compensated IK; the hardware leaf is off by ±h;
     exact forward kinematics (spiral inside) gives the pose. Central differences."""
-    pose = np.array([-150.0, 60.0, 20.0, 0.06, -0.05, 0.1])
+    pose, J, names = fd_pose_sens
     cmd = jt.actuator_command(table, pose)
-    J, names = pose_sensitivity(table, pose, wrt=(name,))
     col = names.index(
         f"{name}[{index[0] + 1}]" + ("" if len(index) == 1 else "." + "xyz"[index[1]])
     )
