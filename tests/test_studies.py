@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import CACHE
 
 from jaxtable._cache import MAX_BYTES
 
@@ -52,10 +53,11 @@ STUDIES = {
 
 def run_quick(name: str, extra: list, out: Path) -> subprocess.CompletedProcess:
     cmd = [sys.executable, f"studies/{name}.py", "--quick", "--out", str(out), *extra]
-    # the persistent compilation cache the test suite uses (see conftest.py), so that reruns
-    # do not recompile the studies' fits
+    # the persistent compilation cache the test suite uses (conftest.CACHE, which
+    # $JAXTABLE_TEST_CACHE moves: a suite timed from an empty cache runs its studies on it
+    # too), so that reruns do not recompile the studies' fits
     env = os.environ | {
-        "JAX_COMPILATION_CACHE_DIR": str(ROOT / ".pytest_cache" / "jax"),
+        "JAX_COMPILATION_CACHE_DIR": str(CACHE),
         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5",
         # the size limit that makes JAX lock the shared cache (see jaxtable/_cache.py)
         "JAX_COMPILATION_CACHE_MAX_SIZE": str(MAX_BYTES),
