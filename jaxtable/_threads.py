@@ -13,12 +13,20 @@ The public functions that fit, sample, select poses or diagnose run under `one_b
 while they run every BLAS threadpoolctl finds (OpenBLAS, MKL, BLIS) is set to
 `$JAXTABLE_BLAS_THREADS` threads (default 1; `off` leaves the pools alone), and the caller's
 settings come back afterwards, so a user's own numpy work keeps its threads.
+
+Cost per call: finding the loaded BLAS libraries (`threadpoolctl` reads the process's
+loaded libraries) took ~2.4 ms a call in a diagnosis's process, and a diagnosis makes ~25
+such calls (its fits, held-out scores and tests are public functions too). The libraries
+found are kept (`_pools`) until a module is imported (a new library comes with an import),
+and a call inside another (same thread) leaves the pools as its caller set them.
 """
 
 import functools
 import os
+import sys
+import threading
 
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 ENV = "JAXTABLE_BLAS_THREADS"
 
@@ -40,15 +48,33 @@ def blas_threads() -> int | None:
     return n
 
 
+_found = {}  # len(sys.modules) when the libraries were found -> ThreadpoolController
+_inside = threading.local()  # .depth: one_blas_thread calls under way in this thread
+
+
+def _pools() -> ThreadpoolController:
+    """The loaded thread-pool libraries, found again after any import."""
+    key = len(sys.modules)
+    if key not in _found:
+        _found.clear()
+        _found[key] = ThreadpoolController()
+    return _found[key]
+
+
 def one_blas_thread(fn):
-    """Run `fn` with the BLAS pools at `blas_threads()` threads, restored afterwards."""
+    """Run `fn` with the BLAS pools at `blas_threads()` threads, restored afterwards (by the
+    outermost such call of the thread: one inside it runs under its caller's setting)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         n = blas_threads()
-        if n is None:
+        if n is None or getattr(_inside, "depth", 0):
             return fn(*args, **kwargs)
-        with threadpool_limits(limits=n, user_api="blas"):
-            return fn(*args, **kwargs)
+        _inside.depth = 1
+        try:
+            with _pools().limit(limits=n, user_api="blas"):
+                return fn(*args, **kwargs)
+        finally:
+            _inside.depth = 0
 
     return wrapper

@@ -1,5 +1,8 @@
 """BLAS pools at one thread while jaxtable fits and diagnoses, the caller's setting after."""
 
+import sys
+import types
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -7,6 +10,7 @@ import scipy.linalg
 from threadpoolctl import threadpool_info, threadpool_limits
 
 import jaxtable as jt
+from jaxtable import _threads
 from jaxtable._threads import ENV, blas_threads, one_blas_thread
 
 # numpy's and scipy's OpenBLAS (jaxlib's LAPACK kernels call scipy's) are both loaded
@@ -56,6 +60,37 @@ def test_the_environment_sets_the_count_or_turns_it_off(two_threads, monkeypatch
         with pytest.raises(ValueError, match=ENV):
             _seen()
     assert set(_blas_threads()) == {2}
+
+
+def test_a_call_inside_another_leaves_the_pools_to_its_caller(two_threads, monkeypatch):
+    """A fit inside a diagnosis: the inner call neither looks for the libraries again nor
+    restores the pools when it returns; the outer call restores them."""
+    monkeypatch.delenv(ENV, raising=False)
+    found = []
+    pools = _threads._pools
+    monkeypatch.setattr(_threads, "_pools", lambda: found.append(1) or pools())
+
+    @one_blas_thread
+    def outer():
+        inner = _seen()
+        return inner, _blas_threads()
+
+    inner, after_inner = outer()
+    assert set(inner) == {1} and set(after_inner) == {1}
+    assert set(_blas_threads()) == {2}
+    assert len(found) == 1  # the outer call only
+    assert set(_seen()) == {1} and len(found) == 2  # a call on its own sets them again
+
+
+def test_the_libraries_are_looked_for_again_after_an_import(monkeypatch):
+    first = _threads._pools()
+    assert _threads._pools() is first
+    monkeypatch.setitem(sys.modules, "jaxtable_test_new_module", types.ModuleType("x"))
+    again = _threads._pools()
+    assert again is not first
+    assert {lib.filepath for lib in again.lib_controllers} == {
+        lib.filepath for lib in first.lib_controllers
+    }
 
 
 @pytest.mark.parametrize(
