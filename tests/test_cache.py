@@ -1,6 +1,8 @@
 """The persistent compilation cache the command line turns on (issue: compile once, not every
 run): where it goes, how it is turned off."""
 
+import time
+
 import jax
 
 from jaxtable._cache import cache_directory, enable_compilation_cache
@@ -63,3 +65,45 @@ def test_entries_without_an_access_time_get_one(tmp_path):
     assert (d / "jit_f-abc-atime").stat().st_size == 8
     assert (d / "jit_g-def-atime").read_bytes() == (7).to_bytes(8, "little")  # kept
     assert _add_missing_access_times(d) == 0
+
+
+def _lru(path, limit):
+    from jax._src.lru_cache import LRUCache
+
+    from jaxtable._cache import _install_running_total
+
+    assert _install_running_total()
+    return LRUCache(str(path), max_size=limit)
+
+
+def test_the_size_limit_still_evicts_the_least_recently_used(tmp_path):
+    """With the running total in place of JAX's per-write listing, a cache past its limit
+    is trimmed as JAX trims it: least recently used entries first, the directory within the
+    limit after every write."""
+    cache = _lru(tmp_path, 5_000)
+    for i in range(4):
+        cache.put(f"k{i}", bytes(1_000))
+        time.sleep(0.002)  # distinct access times
+    for i in range(4, 9):
+        assert cache.get("k0") is not None  # the oldest write, but always just used
+        time.sleep(0.002)
+        cache.put(f"k{i}", bytes(1_000))
+        assert sum(p.stat().st_size for p in tmp_path.glob("*-cache")) <= 5_000
+    left = sorted(p.name.removesuffix("-cache") for p in tmp_path.glob("*-cache"))
+    assert left == ["k0", "k5", "k6", "k7", "k8"], left
+
+
+def test_writes_under_the_limit_list_the_directory_once_per_rescan(tmp_path, monkeypatch):
+    """JAX listed the whole directory and read every access time on every write; now the
+    sizes are listed on the first write and after every RESCAN_WRITES writes."""
+    from jaxtable import _cache
+
+    cache = _lru(tmp_path, 1 << 30)
+    listings = []
+    sizes = _cache._entry_bytes
+    monkeypatch.setattr(_cache, "_entry_bytes", lambda p: listings.append(p) or sizes(p))
+    n = 2 * _cache.RESCAN_WRITES + 2
+    for i in range(n):
+        cache.put(f"k{i}", bytes(10))
+    assert len(listings) == 3  # writes 1, RESCAN_WRITES + 1 and 2 RESCAN_WRITES + 1
+    assert len(list(tmp_path.glob("*-cache"))) == n  # nothing evicted
