@@ -99,6 +99,9 @@ def _install_running_total() -> bool:
     def evict_if_needed(self, *, additional_size: int = 0) -> None:
         if not getattr(self, "eviction_enabled", True):
             return
+        if "://" in str(self.path):  # a remote cache (gs://...): JAX's own check
+            full(self, additional_size=additional_size)
+            return
         path = Path(self.path)
         if _SIZES.over_limit(path, additional_size, self.max_size):
             full(self, additional_size=additional_size)
