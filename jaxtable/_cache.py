@@ -108,7 +108,6 @@ def _install_running_total() -> bool:
             _SIZES.evicted(path)
 
     evict_if_needed._running_total = True
-    evict_if_needed._jax = full
     cls._evict_if_needed = evict_if_needed
     return True
 

@@ -49,7 +49,7 @@ def blas_threads() -> int | None:
 
 
 _found = {}  # len(sys.modules) when the libraries were found -> ThreadpoolController
-_inside = threading.local()  # .depth: one_blas_thread calls under way in this thread
+_inside = threading.local()  # .active: a one_blas_thread call is under way in this thread
 
 
 def _pools() -> ThreadpoolController:
@@ -68,13 +68,13 @@ def one_blas_thread(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         n = blas_threads()
-        if n is None or getattr(_inside, "depth", 0):
+        if n is None or getattr(_inside, "active", False):
             return fn(*args, **kwargs)
-        _inside.depth = 1
+        _inside.active = True
         try:
             with _pools().limit(limits=n, user_api="blas"):
                 return fn(*args, **kwargs)
         finally:
-            _inside.depth = 0
+            _inside.active = False
 
     return wrapper
