@@ -346,6 +346,53 @@ def test_measured_rows_shifted_against_the_commands_are_refused(table, sessions,
     _refused_by_every_verb(table, model, cases["row 41 lost"][0], pattern, tmp_path, "diagnose")
 
 
+def test_a_commanded_pose_its_lengths_disagree_with_is_refused(table, sessions, tmp_path):
+    """A typo in a commanded pose (cmd_z 400 mm off: the forward solve from there did not
+    converge, and the fit stopped with a traceback) or in a commanded length: refused by
+    every verb before it fits, naming the rows (from 1), the worst leg and how far it is
+    off. Not refused: a typo of a few millimetres (the pose only starts the solve), a
+    controller whose zero lengths differ from the table's by centimetres (the same shift at
+    every row), a controller that does not compensate the spiral term, and a table with
+    joints 0.5 mm and zero lengths 5 mm off (a calibrated model's table, as validate
+    compares against)."""
+    from jaxtable._calibration.measurements import GROSS_MM, check_commanded
+
+    _, a, _, cal = sessions
+    assert a.cmd_lengths is not None
+    check_commanded(a, table)
+
+    def edited(pose=(), lengths=()):
+        p, cl = a.cmd_pose.copy(), a.cmd_lengths.copy()
+        for r, c, v in pose:
+            p[r, c] += v
+        for r, c, v in lengths:
+            cl[r, c] += v
+        return dataclasses.replace(a, cmd_pose=p, cmd_lengths=cl)
+
+    far = edited(pose=[(12, 2, 400.0)])
+    with pytest.raises(jt.DataFileError, match=r"row\(s\) 13: .*at row 13, cmd_l\d differs"):
+        check_commanded(far, table)
+    two = edited(pose=[(30, 0, 20.0)], lengths=[(55, 3, 8.0)])
+    with pytest.raises(jt.DataFileError, match=r"row\(s\) 31, 56: .*") as e:
+        check_commanded(two, table)
+    worst = re.search(r"at row (\d+), cmd_l(\d) differs .* by ([+-][\d.]+) mm", str(e.value))
+    if worst.group(1) == "56":  # the length typo: that leg, that amount
+        assert worst.group(2) == "4" and abs(float(worst.group(3)) - 8.0) < 0.1
+    else:  # 20 mm along x moves some leg by more than 8 mm
+        assert worst.group(1) == "31" and abs(float(worst.group(3))) > 8.0
+    model = jt.fitted_model(cal, table, a.sessions)
+    _refused_by_every_verb(table, model, far, r"row\(s\) 13: the commanded pose", tmp_path,
+                           "calibrate")  # fmt: skip
+    # not refused
+    check_commanded(edited(pose=[(12, 2, 0.5 * GROSS_MM)]), table)
+    shift = np.array([12.0, -7.0, 30.0, 0.0, -25.0, 4.0])
+    check_commanded(dataclasses.replace(a, cmd_lengths=a.cmd_lengths + shift), table)
+    check_commanded(
+        jt.simulate(table, table, jt.plan_random(40, 9), jt.tracker6(), compensated=False), table
+    )
+    check_commanded(a, jt.perturb_table(table, 4, joint_sigma=0.5, zero_sigma=5.0))
+
+
 def _joined(a, b, tmp_path):
     pa, pb, both = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "ab.csv"
     jt.save_measurements(a, pa)

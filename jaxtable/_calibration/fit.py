@@ -29,7 +29,7 @@ from .._api import actuator_command
 from .._batch import SMALL_BATCH, _pad_rows, _slice_rows
 from .._context import Context, directions, run_time
 from .._effects import resolve_effects
-from .._errors import POSE_COLUMNS
+from .._errors import POSE_COLUMNS, KinematicsError
 from .._forward import RESULTS, ForwardOptions, forward_one
 from .._jit import jit
 from .._kinematics import in_stroke
@@ -37,7 +37,7 @@ from .._rotation import euler_from_matrix, wrap_reading_difference
 from .._table import Table, replace
 from .._threads import one_blas_thread
 from .instruments import observe
-from .measurements import Measurements, check_alignment, check_units
+from .measurements import Measurements, check_alignment, check_commanded, check_units
 from .noise import NoiseEstimate, NoiseModel, group_scales, noise_model
 from .noise import estimate as noise_estimate
 from .outliers import ALPHA, GrossError, without
@@ -800,6 +800,7 @@ def setup(
     problem = make_problem(
         nominal, data, eff, bases, compensated, used_columns(eff, free), noise.sigma0
     )
+    check_commanded(data, nominal)  # after the stroke check of `make_problem`: more specific
     theta0 = zero_steps(nominal, eff, free, bases)
     if frame_dofs:
         theta0["frame"] = jnp.asarray(initial_frames(data, frame_dofs)[:, list(frame_dofs)])
@@ -921,9 +922,12 @@ def _fit_once(
         )
     if not np.all(np.asarray(solved)[use]):
         bad = np.flatnonzero(~np.asarray(solved) & use)
-        raise RuntimeError(
-            f"forward kinematics failed at the fitted parameters for row(s) "
-            f"{(bad + 1).tolist()[:10]}"
+        raise KinematicsError(
+            "the forward kinematics did not converge at the fitted parameters for row(s) "
+            + ", ".join(str(b) for b in (bad + 1).tolist()[:10])
+            + (", ..." if len(bad) > 10 else "")
+            + " (numbered from 1, the first data row): the fit moved the table where those "
+            "rows' commanded lengths have no pose near their commanded pose; check those rows"
         )
     before = np.asarray(r0).reshape(-1, 6)
     after = np.asarray(r).reshape(-1, 6)

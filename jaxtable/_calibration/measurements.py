@@ -402,6 +402,53 @@ def check_alignment(data: Measurements, nominal=None) -> None:
             )
 
 
+GROSS_MM = 5.0
+"""A commanded pose whose inverse kinematics misses its row's commanded lengths by more than
+this (mm, in some leg, beyond that leg's offset common to the file) is refused by
+`check_commanded`: a table's geometric errors move a leg by a millimetre or two over the
+workspace, the spiral term by tenths."""
+
+
+def check_commanded(data: Measurements, nominal) -> None:
+    """Refuse rows whose commanded pose is not where their commanded lengths (cmd_l columns)
+    put the `nominal` table: a typo or a logging glitch in one of them. The fit uses the
+    lengths; the pose labels the row and starts the forward solve, which from far enough
+    away does not converge. Per row and leg, the lengths minus the table's inverse
+    kinematics of the commanded pose (compensated or not, whichever is closer), less the
+    leg's median over the file (a controller whose zero lengths differ from the table's
+    shifts a leg by the same amount at every row); a row is refused when some leg is off by
+    more than `GROSS_MM`.
+
+    Raises DataFileError naming the rows (numbered from 1, the first data row), the leg and
+    how far it is off; no-op without cmd_l columns."""
+    if data.cmd_lengths is None or nominal is None:
+        return
+    from .._api import actuator_command
+
+    cmd_l = np.asarray(data.cmd_lengths, float)
+    off = np.full(cmd_l.shape, np.inf)
+    for compensated in (True, False):
+        ik = np.asarray(actuator_command(nominal, data.cmd_pose, compensated, check=False))
+        d = cmd_l - ik
+        d = d - np.nanmedian(d, axis=0)
+        closer = np.nan_to_num(np.abs(d), nan=np.inf).max(1) < np.abs(off).max(1)
+        off[closer] = d[closer]
+    worst = np.abs(off).max(1)
+    bad = np.flatnonzero(~(worst <= GROSS_MM))
+    if len(bad) == 0:
+        return
+    r = int(bad[np.argmax(worst[bad])])
+    leg = int(np.argmax(np.abs(off[r])))
+    rows = ", ".join(str(b + 1) for b in bad[:10]) + (", ..." if len(bad) > 10 else "")
+    raise DataFileError(
+        f"row(s) {rows}: the commanded pose (cmd_x..cmd_yaw) is not where the commanded "
+        f"lengths (cmd_l1..cmd_l6) put the table: at row {r + 1}, cmd_l{leg + 1} differs "
+        f"from the table's inverse kinematics of the commanded pose by {off[r, leg]:+.3f} mm "
+        f"(more than {GROSS_MM:g} mm beyond that leg's common offset in this file). A typo "
+        "or a glitch in the commanded pose or in the lengths: correct the row or remove it"
+    )
+
+
 def _size(d):
     """Size of each move: |d| for (n,) turns or distances, the largest leg's |change| for
     (n, 6) lengths."""

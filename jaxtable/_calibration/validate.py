@@ -39,7 +39,7 @@ from .fit import (
 )
 from .fit import validate as column_rms
 from .instruments import readings
-from .measurements import Measurements, check_alignment, check_units
+from .measurements import Measurements, check_alignment, check_commanded, check_units
 from .model_file import FittedModel, load_fitted_model
 
 
@@ -152,6 +152,7 @@ def validate_model(
     check_units(data)
     table = model.table
     check_alignment(data, table)
+    check_commanded(data, table)
     effects = resolve_effects(table, model.effects)
     if data.cmd_lengths is None and nominal is None:
         raise ValueError(
