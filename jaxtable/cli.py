@@ -2,12 +2,14 @@
 reference table) and writes its figures and a Markdown report into --out DIR."""
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
 from ._analysis.tolerances import ToleranceFileError
 from ._analysis.workspaces import WorkspaceFileError
 from ._cache import enable_compilation_cache
+from ._calibration.heldout import UNDEFINED_WORDS, heldout_text
 from ._calibration.measurements import DataFileError
 from ._errors import KinematicsError, TableFileError
 from ._params import GEOMETRY, form_label
@@ -250,8 +252,13 @@ def _diagnose(args) -> int:
     print(
         f"selected: {', '.join(map(form_label, diag.selected_forms)) or 'none'}; unexplained: "
         f"{str(diag.unexplained).lower()}; RMS {diag.rms_before:.3f} -> {diag.rms_after:.3f} "
-        f"sigma, held-out {diag.heldout_rms_before:.3f} -> {diag.heldout_rms_after:.3f} sigma"
+        f"sigma, held-out {heldout_text(diag.heldout_rms_before)} -> "
+        f"{heldout_text(diag.heldout_rms_after, suffix=' sigma')}"
     )
+    if not math.isfinite(diag.heldout_rms_after):
+        print(
+            f"held-out check not defined: {UNDEFINED_WORDS}; no effect can be accepted without it"
+        )
     for f in diag.discovered:
         print(f"discovered: {f.words}")
     if diag.absorbed:

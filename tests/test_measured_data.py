@@ -514,6 +514,54 @@ def test_clean_data_lose_no_reading_1000_seeds(table):
 # --- commands without cmd_l ------------------------------------------------------------------
 
 
+def test_heldout_is_not_defined_where_a_fold_alone_fixes_a_fitted_parameter(table, sessions):
+    """The block-deletion held-out RMS is NaN exactly where the rows outside some fold leave
+    a fitted direction free (their column-scaled Jacobian has a lower rank than the whole
+    fit's, by numpy's SVD): too few stops for k folds. Before, the singular solve returned
+    a number made of rounding (1.5×10⁶ σ on 8 stops)."""
+    from jaxtable._calibration.heldout import heldout_rms
+
+    _, a, _, cal = sessions
+    mask = np.isfinite(a.measured)
+    J = np.asarray(cal.jacobian)
+    J = J / np.where(np.linalg.norm(J, axis=0) > 0, np.linalg.norm(J, axis=0), 1.0)
+
+    def rank(rows):
+        idx = (rows[:, None] * 6 + np.arange(6)[None, :])[mask[rows]]
+        sv = np.linalg.svd(J[idx], compute_uv=False)
+        return int((sv > 1e-6 * np.linalg.svd(J, compute_uv=False)[0]).sum())
+
+    n, full = len(a), rank(np.arange(len(a)))
+    assert full == np.linalg.matrix_rank(J, tol=1e-6 * np.linalg.norm(J, 2))
+    for kept in (5, 7, 12, 40):  # one fold holds every row but the first `kept`
+        folds = [np.arange(kept, n), np.arange(kept)]
+        lacking = rank(np.arange(kept)) < full or rank(np.arange(kept, n)) < full
+        h = heldout_rms(cal, folds, mask)
+        assert np.isnan(h) == lacking, (kept, h, lacking)
+        if not lacking:
+            assert 0.5 < h < 100.0, (kept, h)
+    assert rank(np.arange(5)) < full and rank(np.arange(40)) == full  # both kinds were seen
+
+
+@pytest.mark.slow
+def test_diagnose_on_too_few_stops_says_held_out_is_not_defined(table, tmp_path, capsys):
+    """8 stops of a 6-D tracker (48 readings for the geometry and the frame): `diagnose`
+    accepts nothing, writes null held-out figures, and says why."""
+    true = jt.perturb_table(table, 5)
+    path = tmp_path / "tiny.csv"
+    jt.save_measurements(
+        jt.simulate(table, true, jt.plan_random(8, 4), jt.tracker6(), seed=4), path
+    )
+    out = tmp_path / "out"
+    assert main(["diagnose", str(path), "--out", str(out), "--json", str(out / "d.json")]) == 0
+    said = capsys.readouterr().out
+    assert "held-out n/a -> n/a" in said and "held-out check not defined" in said
+    d = json.loads((out / "d.json").read_text())
+    assert d["selected"] == [] and d["discovered"] == []
+    assert d["gain"]["heldout_rms_before"] is None and d["gain"]["heldout_rms_after"] is None
+    assert "Held-out check not defined" in (out / "report.md").read_text()
+
+
 def test_commands_without_cmd_l_need_the_compensation_stated(table, sessions, tmp_path, capsys):
     _, a, _, _ = sessions
     bare = dataclasses.replace(a, cmd_lengths=None)

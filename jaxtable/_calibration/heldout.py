@@ -4,6 +4,8 @@ identity of least squares (no refits)."""
 import math
 
 import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
+from scipy.linalg.lapack import dpocon
 
 from .._threads import one_blas_thread
 from .fit import Calibration
@@ -18,6 +20,13 @@ def make_folds(n: int, k: int, seed: int, grouped: bool = False) -> list[np.ndar
         return [np.asarray(b) for b in np.array_split(np.arange(n), k)]
     perm = np.random.default_rng(seed).permutation(n)
     return [np.sort(perm[i::k]) for i in range(k)]
+
+
+UNDETERMINED = 1e-10
+"""`heldout_rms` is NaN when, for some fold, the other rows carry less than this share of the
+information on some fitted direction (the reciprocal condition number of G = U_RᵀU_R, whose
+eigenvalues lie between 0 and 1): that fold's rows alone determine the direction, so a fit
+to the rest leaves it free and the held-out residuals are not defined by the data."""
 
 
 @one_blas_thread
@@ -38,6 +47,10 @@ def heldout_rms(
     e_F + U_F G⁻¹ U_Fᵀ e_F, G = I − U_FᵀU_F = U_RᵀU_R over the other rows R (formed from
     them, not by the subtraction): O(m r²), not O(m³) (a 10,000-stop run's folds hold
     12,000 readings).
+
+    NaN where some fold's rows alone determine a fitted direction (`UNDETERMINED`): too few
+    stops for k folds (8 stops of a 6-D tracker for 42 geometric parameters), or a fold
+    that alone moves some way (the only stops of one direction of travel on an x line).
     """
     e = cal.residual.reshape(-1)
     U = fit_basis(cal.jacobian, tol)
@@ -47,10 +60,36 @@ def heldout_rms(
         UF = U[idx]
         rest = np.ones(len(U), bool)
         rest[idx] = False
-        UR = U[rest]
-        x = e[idx] + UF @ np.linalg.solve(UR.T @ UR, UF.T @ e[idx])
+        factor = _factor(U[rest])
+        if factor is None:
+            return math.nan
+        x = e[idx] + UF @ cho_solve(factor, UF.T @ e[idx])
         if rescale is not None:  # (N, 6) factors: the residuals in other σ units
             x = x * np.asarray(rescale).reshape(-1)[idx]
         sq += float(x @ x)
         count += len(idx)
     return math.sqrt(sq / max(count, 1))
+
+
+def _factor(UR):
+    """Cholesky factor of G = U_RᵀU_R (r × r), or None where G is singular to
+    `UNDETERMINED` (LAPACK's condition estimate from the factor, O(r²))."""
+    G = UR.T @ UR
+    try:
+        c, lower = cho_factor(G)
+    except LinAlgError:
+        return None
+    rcond, info = dpocon(c, float(np.abs(G).sum(0).max()), uplo="L" if lower else "U")
+    return (c, lower) if info == 0 and rcond >= UNDETERMINED else None
+
+
+UNDEFINED_WORDS = (
+    "some fold's rows alone determine a fitted parameter (too few stops for "
+    "the model, or stops that do not spread over the workspace)"
+)
+
+
+def heldout_text(x: float, spec: str = ".3f", suffix: str = "") -> str:
+    """A held-out figure for reports: `x` formatted, or "n/a" where it is NaN
+    (`heldout_rms`: not defined by the data)."""
+    return f"{x:{spec}}{suffix}" if math.isfinite(x) else "n/a"

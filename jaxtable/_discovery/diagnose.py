@@ -50,7 +50,7 @@ import numpy as np
 
 from .. import _params as params
 from .._calibration.fit import OUTLIERS, Calibration, Setup, fit, residual_jit, setup
-from .._calibration.heldout import heldout_rms, make_folds
+from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements
 from .._calibration.outliers import GrossError, without
 from .._calibration.outliers import screen as screen_gross_errors
@@ -659,7 +659,8 @@ def diagnose(
         for c in cands:
             log(
                 f"  candidate {c.effect:14s} dBIC = {c.delta_bic:10.1f}  held-out gain "
-                f"{100 * c.heldout_gain:+6.1f} %  explains {100 * c.share:5.0f} % of the excess"
+                f"{heldout_text(100 * c.heldout_gain, '+6.1f', ' %'):>8s}  explains "
+                f"{100 * c.share:5.0f} % of the excess"
             )
         paying = [c for c in strong if c.heldout_gain > min_gain and explains(c)]
         if len(_forms_of(model, base)) >= max_effects:
@@ -786,7 +787,12 @@ def diagnose(
                     model.append("discovered")
                 current = trial
                 continue
-            log(f"  dictionary: {cand.label} does not pay on held-out rows ({100 * gain:+.1f} %)")
+            log(
+                f"  dictionary: {cand.label} does not pay on held-out rows ({100 * gain:+.1f} %)"
+                if math.isfinite(gain)
+                else f"  dictionary: {cand.label} cannot be checked on held-out rows: "
+                f"{UNDEFINED_WORDS}"
+            )
         if lib is None:
             step.decision = (
                 "structure remains but no candidate pays on held-out data: stop"

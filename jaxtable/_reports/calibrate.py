@@ -2,12 +2,13 @@
 instrument frames, parameters with σ under physical names, held-out check) and, with a
 posterior, its corner plot and predictive bands. Shared by `jaxtable calibrate`."""
 
+import math
 from pathlib import Path
 
 import numpy as np
 
 from .._calibration.fit import Calibration, Setup
-from .._calibration.heldout import heldout_rms, make_folds
+from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, make_folds
 from .._calibration.measurements import Measurements
 from .._calibration.model_file import fitted_model, save_fitted_model
 from .._calibration.posterior import PosteriorResult, PredictiveBands
@@ -74,9 +75,13 @@ def write_calibration_report(
             "|---|---|---|---|",
             *rows,
             "",
-            f"Held-out check (5-fold: each fifth of the rows predicted by the fit to the rest): "
-            f"RMS {heldout_rms(cal, folds, st.mask):.3f} σ, against {cal.rms_sigma_after:.3f} σ "
-            "on the fitted rows (1.0 = the instrument noise).",
+            "Held-out check (5-fold: each fifth of the rows predicted by the fit to the rest): "
+            + (
+                f"RMS {held:.3f} σ, against {cal.rms_sigma_after:.3f} σ on the fitted rows "
+                "(1.0 = the instrument noise)."
+                if math.isfinite(held := heldout_rms(cal, folds, st.mask))
+                else f"not defined: {UNDEFINED_WORDS}."
+            ),
             "",
             *(
                 []

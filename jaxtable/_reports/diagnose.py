@@ -1,11 +1,13 @@
 """Markdown, figures and JSON of a diagnosis (shared by `jaxtable diagnose` and studies)."""
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 
 from .. import _params as vocab
+from .._calibration.heldout import UNDEFINED_WORDS, heldout_text
 from .._calibration.measurements import Measurements, save_measurements
 from .._calibration.model_file import save_fitted_model
 from .._discovery.diagnose import (
@@ -189,7 +191,7 @@ def _dictionary_lines(diag: Diagnosis) -> list[str]:
             coef = ", ".join(f"{v:.3g} ± {e:.2g}" for v, e in zip(f.coefficient, f.std))
             lines.append(
                 f"| `{f.candidate.term}` | {f.candidate.label} | {coef} {unit} | "
-                f"{f.delta_bic:.1f} | {100 * f.heldout_gain:+.1f} % |"
+                f"{f.delta_bic:.1f} | {heldout_text(100 * f.heldout_gain, '+.1f', ' %')} |"
             )
         lines.append("")
         lines += [f"- {f.words}" for f in diag.discovered] + [""]
@@ -268,9 +270,17 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         "",
         "| | fit RMS (units of the final model's σ) | held-out RMS (same units, k-fold) |",
         "|---|---|---|",
-        f"| geometric model | {diag.rms_before:.3f} | {diag.heldout_rms_before:.3f} |",
-        f"| final model | {diag.rms_after:.3f} | {diag.heldout_rms_after:.3f} |",
+        f"| geometric model | {diag.rms_before:.3f} | {heldout_text(diag.heldout_rms_before)} |",
+        f"| final model | {diag.rms_after:.3f} | {heldout_text(diag.heldout_rms_after)} |",
         "",
+        *(
+            []
+            if math.isfinite(diag.heldout_rms_after)
+            else [
+                f"Held-out check not defined: {UNDEFINED_WORDS}; no effect is accepted without it.",
+                "",
+            ]
+        ),
         "RMS per column (mm / rad), geometric -> final: "
         + ", ".join(
             f"{c} {diag.base.rms_after[c]:.4g} -> {diag.final.rms_after[c]:.4g}"
@@ -285,7 +295,7 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
             f"### Step {k + 1}: model {' + '.join(step.model)}",
             "",
             f"χ²/dof = {step.chi2:.1f}/{step.dof}, "
-            f"RMS {step.rms:.3f} σ, held-out RMS {step.heldout_rms:.3f} σ; "
+            f"RMS {step.rms:.3f} σ, held-out RMS {heldout_text(step.heldout_rms, suffix=' σ')}; "
             + (step.structure.words() if step.structure is not None else "")
             + f". Decision: {step.decision}.",
             "",
@@ -298,7 +308,7 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
             left = "–" if c.structure_after is None else f"{c.structure_after:.3g}"
             lines.append(
                 f"| {vocab.form_label(c.effect)} | {c.delta_bic:.1f} | "
-                f"{100 * c.heldout_gain:+.1f} % | "
+                f"{heldout_text(100 * c.heldout_gain, '+.1f', ' %')} | "
                 f"{100 * c.share:.0f} % | {left} | {_fmt_params(c.params)} |"
             )
         lines.append("")
