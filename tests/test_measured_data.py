@@ -543,6 +543,55 @@ def test_heldout_is_not_defined_where_a_fold_alone_fixes_a_fitted_parameter(tabl
     assert rank(np.arange(5)) < full and rank(np.arange(40)) == full  # both kinds were seen
 
 
+def test_folds_spread_every_session_over_several_folds():
+    """Folds dealt by session: a partition of the rows, sizes within one of each other, and a
+    session of m rows in min(m, k) folds (so no fold holds all of a session of two rows or
+    more, whose frame the other rows then still fit), over 200 random session layouts; one
+    session deals as the unstratified folds do."""
+    from jaxtable._calibration.heldout import make_folds
+
+    rng = np.random.default_rng(0)
+    for seed in range(200):
+        sizes = rng.integers(1, 9, size=rng.integers(1, 12))
+        strata = np.repeat(rng.permutation(len(sizes)), sizes)  # labels in any order
+        n, k = len(strata), 5
+        folds = make_folds(n, k, seed, strata=strata)
+        rows = np.concatenate(folds)
+        assert np.array_equal(np.sort(rows), np.arange(n))
+        assert max(map(len, folds)) - min(map(len, folds)) <= 1
+        for s, m in zip(*np.unique(strata, return_counts=True)):
+            holding = sum(bool(np.isin(np.flatnonzero(strata == s), f).any()) for f in folds)
+            assert holding == min(m, k), (seed, s, m, holding)
+        one = make_folds(n, k, seed, strata=np.zeros(n))
+        assert all(np.array_equal(a, b) for a, b in zip(one, make_folds(n, k, seed)))
+
+
+@pytest.mark.slow
+def test_short_sessions_keep_the_held_out_check(table, tmp_path):
+    """20 sessions of 2 stops, each with its own tracker frame, the spiral term in the
+    hardware and compensated in the commanded lengths: `diagnose` selects the spiral term
+    with a held-out gain (before the folds were dealt by session, a short session often fell
+    in one fold, and the held-out check was not defined)."""
+    true = jt.perturb_table(table, 5)
+    parts = [
+        jt.simulate(
+            table,
+            true,
+            jt.plan_random(2, 10 + k),
+            jt.tracker6(),
+            session=f"S{k}",
+            frame=(k * 1.0, 0, 0, 0, 0, 0.001 * k),
+            seed=k,
+        )  # fmt: skip
+        for k in range(20)
+    ]
+    from jaxtable._calibration.simulate import concat
+
+    diag = jt.diagnose(table, concat(*parts), log=lambda *_: None)
+    assert diag.selected_forms[:1] in (["spiral[all]"], ["spiral"]), diag.selected_forms
+    assert np.isfinite(diag.heldout_rms_after) and diag.heldout_rms_after < 3.0
+
+
 @pytest.mark.slow
 def test_diagnose_on_too_few_stops_says_held_out_is_not_defined(table, tmp_path, capsys):
     """8 stops of a 6-D tracker (48 readings for the geometry and the frame): `diagnose`

@@ -12,13 +12,22 @@ from .fit import Calibration
 from .noise import fit_basis
 
 
-def make_folds(n: int, k: int, seed: int, grouped: bool = False) -> list[np.ndarray]:
+def make_folds(n: int, k: int, seed: int, grouped: bool = False, strata=None) -> list[np.ndarray]:
     """k disjoint folds of row indices 0..n−1 (sorted arrays), rows dealt at random; with
     `grouped`, k contiguous blocks of rows instead (each fold a stretch of the run, so a
-    held-out score also tests extrapolation in time and between neighbouring stops)."""
+    held-out score also tests extrapolation in time and between neighbouring stops).
+
+    `strata` (n,) labels (the session of each row): rows are dealt stratum by stratum, in
+    random order within each, to consecutive folds, so a stratum of m rows spreads over
+    min(m, k) folds. A session's own parameters (its tracker frame) are then fitted from
+    rows outside any fold wherever the session has two rows or more: dealt as one deck, a
+    short session could land in one fold, whose held-out residuals the other rows could not
+    predict (`heldout_rms` NaN). One stratum deals as without."""
     if grouped:
         return [np.asarray(b) for b in np.array_split(np.arange(n), k)]
     perm = np.random.default_rng(seed).permutation(n)
+    if strata is not None:
+        perm = perm[np.argsort(np.asarray(strata)[perm], kind="stable")]
     return [np.sort(perm[i::k]) for i in range(k)]
 
 

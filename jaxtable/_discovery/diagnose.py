@@ -549,7 +549,7 @@ def diagnose(
     st = discovery_setup(nominal, data, compensated=compensated, sigma=sigma)
     mask = st.mask
     all_rows = np.arange(len(data))
-    fold_rows = make_folds(len(data), folds, seed)
+    fold_rows = make_folds(len(data), folds, seed, strata=data.session_index)
     block_rows = make_folds(len(data), folds, seed, grouped=True)  # terms: grouped folds
     not_applicable = {}
     for name in library:

@@ -290,7 +290,7 @@ def residual_gp(
     h, nlp, ok = _fit_hyper(h0, args, max_steps)
     h = jax.tree.map(np.asarray, h)
 
-    rows = make_folds(n, folds, seed, grouped=grouped)
+    rows = make_folds(n, folds, seed, grouped=grouped, strata=np.asarray(st.problem.session)[keep])
     pos = np.full(n * 6, -1)
     pos[obs] = np.arange(len(obs))
     sq_m = sq_g = 0.0

@@ -58,7 +58,7 @@ def write_calibration_report(
         f"| {lab} | `{key}` | {v:+.5g} | {s:.3g} |"
         for lab, key, v, s in zip(labels, cal.names, cal.value, cal.std)
     ]
-    folds = make_folds(len(data), 5, 0)
+    folds = make_folds(len(data), 5, 0, strata=data.session_index)
     text = "\n".join(
         [
             f"# Calibration of {nominal.name} from {source}",
