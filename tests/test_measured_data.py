@@ -5,6 +5,7 @@ and a fitted model that predicts a new session (the tracker set up anew)."""
 import dataclasses
 import json
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -739,3 +740,9 @@ def test_validate_cli_writes_json_report_and_figures(table, sessions, tmp_path):
     assert doc["rows_registered"] == 10 and doc["rows_predicted"] == 50
     for name in ("report.md", "residuals_by_stop.png", "residuals_by_pose.png"):
         assert (out / name).stat().st_size > 0
+    # every row registered (no --register, a new session): a fit; its figures show the
+    # fitted rows, with no numpy warning about an empty set of predicted rows
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        assert main(["validate", str(path), str(tmp_path / "b.csv"), "--out", str(out)]) == 0
+    assert json.loads((out / "validation.json").read_text())["rows_predicted"] == 0

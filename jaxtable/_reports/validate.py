@@ -40,19 +40,24 @@ def residual_figures(v: Validation, out: Path) -> list[Path]:
     plt.close(fig)
 
     cmd = params.pose_to_file(v.data.cmd_pose)
+    shown = ~reg if (~reg).any() else np.ones_like(reg)  # every row registered: the fit's
     fig, axes = plt.subplots(2, 3, figsize=(12, 6.5), sharey=True)
     for c, ax in enumerate(axes.ravel()):
         for k in cols:
-            ok = ~reg & np.isfinite(res[:, k])
+            ok = shown & np.isfinite(res[:, k])
             y = res[ok, k] * _UNIT[k]
-            scale = np.nanstd(res[~reg, k] * _UNIT[k]) or 1.0
+            scale = (np.std(y) if ok.sum() > 1 else 0.0) or 1.0
             ax.plot(cmd[ok, c], y / scale, ".", ms=2.5, label=params.POSE[k])
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xlabel(f"commanded {params.POSE[c]} ({'mm' if c < 3 else 'deg'})")
     axes[0, 0].set_ylabel("residual / its RMS")
     axes[1, 0].set_ylabel("residual / its RMS")
     axes[0, 0].legend(fontsize=7, ncol=2)
-    fig.suptitle("predicted rows: residual of each measured column against the pose", fontsize=10)
+    fig.suptitle(
+        ("predicted rows" if (~reg).any() else "every row registered (a fit, not a prediction)")
+        + ": residual of each measured column against the pose",
+        fontsize=10,
+    )
     fig.tight_layout()
     p2 = out / "residuals_by_pose.png"
     fig.savefig(p2, dpi=100)
