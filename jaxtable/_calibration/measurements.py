@@ -349,12 +349,7 @@ def check_alignment(data: Measurements, nominal=None) -> None:
         names = ("measured", "the commanded ones", "commanded")
         pairs.append((words, names, least, tol, d_meas, (d_cmd,), ok))
     if nominal is not None and data.cmd_lengths is not None:
-        from .._api import actuator_command
-
-        steps = []
-        for compensated in (True, False):
-            ik = np.asarray(actuator_command(nominal, data.cmd_pose, compensated, check=False))
-            steps.append(np.diff(ik, axis=0))
+        steps = [np.diff(ik, axis=0) for ik in _nominal_lengths(nominal, data.cmd_pose)]
         dl = np.diff(np.asarray(data.cmd_lengths, float), axis=0)
         words = "commanded lengths (cmd_l) change"
         names = ("cmd_l", "the inverse kinematics of the commanded poses", "commanded pose")
@@ -402,6 +397,18 @@ def check_alignment(data: Measurements, nominal=None) -> None:
             )
 
 
+def _nominal_lengths(nominal, cmd_pose) -> list[np.ndarray]:
+    """The table's inverse kinematics of the commanded poses (N, 6) mm, by a controller that
+    compensates the spiral term and by one that does not (`check_alignment`,
+    `check_commanded`: the file's cmd_l may come from either)."""
+    from .._api import actuator_command
+
+    return [
+        np.asarray(actuator_command(nominal, cmd_pose, compensated, check=False))
+        for compensated in (True, False)
+    ]
+
+
 GROSS_MM = 5.0
 """A commanded pose whose inverse kinematics misses its row's commanded lengths by more than
 this (mm, in some leg, beyond that leg's offset common to the file) is refused by
@@ -423,12 +430,9 @@ def check_commanded(data: Measurements, nominal) -> None:
     how far it is off; no-op without cmd_l columns."""
     if data.cmd_lengths is None or nominal is None:
         return
-    from .._api import actuator_command
-
     cmd_l = np.asarray(data.cmd_lengths, float)
     off = np.full(cmd_l.shape, np.inf)
-    for compensated in (True, False):
-        ik = np.asarray(actuator_command(nominal, data.cmd_pose, compensated, check=False))
+    for ik in _nominal_lengths(nominal, data.cmd_pose):
         d = cmd_l - ik
         d = d - np.nanmedian(d, axis=0)
         closer = np.nan_to_num(np.abs(d), nan=np.inf).max(1) < np.abs(off).max(1)
