@@ -161,7 +161,7 @@ def _calibrate(args) -> int:
     from ._calibration.outliers import without
     from ._calibration.posterior import posterior, predictive_bands
     from ._calibration.simulate import plan_x_line
-    from ._discovery.structure import structure_test
+    from ._discovery.structure import TooFewRowsError, structure_test
     from ._reports.calibrate import write_calibration_report
 
     table = _table(args.table)
@@ -186,7 +186,10 @@ def _calibrate(args) -> int:
     if args.mcmc:
         post = posterior(st, cal, n_steps=args.steps, seed=0, progress=True)
         bands = predictive_bands(st, post, plan_x_line(), n_samples=100)
-    structure = structure_test(cal, st)
+    try:
+        structure, no_test = structure_test(cal, st), None
+    except TooFewRowsError as e:  # a fit of a few stops is still a fit
+        structure, no_test = None, f"structure test not run: {e}"
     paths = write_calibration_report(
         table,
         st,
@@ -199,7 +202,7 @@ def _calibrate(args) -> int:
         structure=structure,
     )
     print(cal.report())
-    print(structure.words())
+    print(structure.words() if structure is not None else no_test)
     print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0
 

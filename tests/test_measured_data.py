@@ -593,6 +593,39 @@ def test_short_sessions_keep_the_held_out_check(table, tmp_path):
     assert np.isfinite(diag.heldout_rms_after) and diag.heldout_rms_after < 3.0
 
 
+def test_diagnose_refuses_too_few_stops_before_fitting(table, sessions, tmp_path, monkeypatch):
+    """4 measured stops (and a fifth with nothing measured): no structure test can compare
+    neighbours, so `diagnose` refuses before any fit (it fitted the base model first, then
+    stopped), and the command line says so, exits with 2 and writes nothing."""
+    import jaxtable._discovery.diagnose as dg
+
+    _, a, _, _ = sessions
+    few = a.subset(np.arange(5))
+    few.measured[4] = np.nan
+    monkeypatch.setattr(dg, "discovery_setup", lambda *_, **__: pytest.fail("it fitted"))
+    with pytest.raises(ValueError, match=r"more than 4 measured stops .*; 4 here"):
+        jt.diagnose(table, few)
+    path = tmp_path / "few.csv"
+    jt.save_measurements(few, path)
+    assert main(["diagnose", str(path), "--out", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_calibrate_on_three_stops_fits_without_the_structure_test(table, sessions, tmp_path,
+                                                                  capsys):  # fmt: skip
+    """A fit of a few stops is still a fit (zero lengths and the frame from 3 stops of a 6-D
+    tracker): written, with the structure test said not to run (it stopped the command
+    with a traceback)."""
+    _, a, _, _ = sessions
+    path = tmp_path / "three.csv"
+    jt.save_measurements(a.subset(np.arange(3)), path)
+    out = tmp_path / "out"
+    assert main(["calibrate", str(path), "--free", "zero_lengths", "--out", str(out)]) == 0
+    assert "structure test not run: the structure test needs more than 4" in capsys.readouterr().out
+    assert (out / "calibrated_table.toml").stat().st_size > 0
+
+
 @pytest.mark.slow
 def test_diagnose_on_too_few_stops_says_held_out_is_not_defined(table, tmp_path, capsys):
     """8 stops of a 6-D tracker (48 readings for the geometry and the frame): `diagnose`

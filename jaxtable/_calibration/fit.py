@@ -1093,7 +1093,7 @@ def set_aside_gross_errors(
     one is found, set it aside (not measured) and refit with `run(data) -> (setup, fit)`.
     Returns the last (set-up, fit), the fit with `set_aside` (`GrossError`s, largest first,
     each with its residual from that fit) and `untested`."""
-    from .._discovery.structure import structure_test
+    from .._discovery.structure import TooFewRowsError, structure_test
 
     found = []
     untested = crowded = 0
@@ -1101,7 +1101,7 @@ def set_aside_gross_errors(
     try:
         test = structure_test(cal, st)
         skip = test.words() if test.structure else ""
-    except ValueError as e:  # too few rows to test (or to screen)
+    except TooFewRowsError as e:  # too few rows to test (or to screen)
         skip = str(e)
     if skip:  # data snooping needs a model that fits: not screened
         cal.set_aside, cal.screen_skipped = [], skip

@@ -61,7 +61,7 @@ from .._table import Table
 from .._threads import one_blas_thread
 from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
 from .gp import ResidualGP, residual_gp
-from .structure import StructureTest, structure_test
+from .structure import NEIGHBOURS, StructureTest, TooFewRowsError, structure_test
 
 GEOMETRY = params.GEOMETRY
 
@@ -520,6 +520,12 @@ def diagnose(
         )
         nominal, data = data, nominal
     log = log or (lambda msg: print(msg, file=sys.stderr))
+    measured_rows = int(np.isfinite(np.asarray(data.measured)).any(axis=1).sum())
+    if measured_rows <= NEIGHBOURS + 1:  # before any fit: the same refusal would come after
+        raise TooFewRowsError(
+            f"a diagnosis needs more than {NEIGHBOURS + 1} measured stops (its structure test "
+            f"compares neighbouring stops); {measured_rows} here"
+        )
     if outliers not in OUTLIERS:
         raise ValueError(f"outliers must be one of {OUTLIERS}; got {outliers!r}")
     if outliers == "set_aside":

@@ -43,6 +43,13 @@ FAMILIES = {
 }
 
 
+NEIGHBOURS = 3  # k of the k-nearest-neighbour agreement statistic (`structure_test`)
+
+
+class TooFewRowsError(ValueError):
+    """The structure test needs more fitted rows than the data have."""
+
+
 @dataclass(frozen=True)
 class StructureTest:
     """Outcome of `structure_test`.
@@ -246,7 +253,7 @@ def structure_test(
     *,
     alpha: float = 0.01,
     draws: int = 1000,
-    neighbours_k: int = 3,
+    neighbours_k: int = NEIGHBOURS,
     seed: int = 0,
     tol: float = 1e-6,
 ) -> StructureTest:
@@ -257,7 +264,9 @@ def structure_test(
     w = whitened(cal, st, tol)
     rows = w.rows
     if len(rows) <= neighbours_k + 1:
-        raise ValueError(f"the structure test needs more than {neighbours_k + 1} fitted rows")
+        raise TooFewRowsError(
+            f"the structure test needs more than {neighbours_k + 1} fitted rows; {len(rows)} here"
+        )
 
     feats = features(st)
     nns = {f: neighbours(x, neighbours_k, rows) for f, x in feats.items()}
