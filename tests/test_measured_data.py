@@ -593,6 +593,19 @@ def test_short_sessions_keep_the_held_out_check(table, tmp_path):
     assert np.isfinite(diag.heldout_rms_after) and diag.heldout_rms_after < 3.0
 
 
+def test_data_with_nothing_measured_are_refused_by_every_verb(table, sessions, tmp_path):
+    """Measured columns present but every cell empty: refused by calibrate, diagnose and
+    validate before they fit (validate stopped in its figures with a traceback)."""
+    _, a, _, cal = sessions
+    empty = dataclasses.replace(a, measured=np.full_like(a.measured, np.nan))
+    model = jt.fitted_model(cal, table, a.sessions)
+    _refused_by_every_verb(table, model, empty, "no measured values in the data", tmp_path,
+                           "calibrate")  # fmt: skip
+    model_path = jt.save_fitted_model(model, tmp_path / "m.toml")
+    args = ["validate", str(model_path), str(tmp_path / "bad.csv"), "--out", str(tmp_path / "v")]
+    assert main(args) == 2 and not (tmp_path / "v").exists()
+
+
 def test_diagnose_refuses_too_few_stops_before_fitting(table, sessions, tmp_path, monkeypatch):
     """4 measured stops (and a fifth with nothing measured): no structure test can compare
     neighbours, so `diagnose` refuses before any fit (it fitted the base model first, then

@@ -37,7 +37,13 @@ from .._rotation import euler_from_matrix, wrap_reading_difference
 from .._table import Table, replace
 from .._threads import one_blas_thread
 from .instruments import observe
-from .measurements import Measurements, check_alignment, check_commanded, check_units
+from .measurements import (
+    Measurements,
+    check_alignment,
+    check_commanded,
+    check_units,
+    require_measured,
+)
 from .noise import NoiseEstimate, NoiseModel, group_scales, noise_model
 from .noise import estimate as noise_estimate
 from .outliers import ALPHA, GrossError, without
@@ -776,8 +782,7 @@ def setup(
     `calibrate`). Every block in `free` gets a θ entry (zero = the start value). `sigma`:
     {column: σ (mm / rad)} stated by the user (overrides the file's σ columns)."""
     free = tuple(free)
-    if not np.isfinite(data.measured).any():
-        raise ValueError("no measured values in the data")
+    require_measured(data)
     check_units(data)
     check_alignment(data, nominal)
     mask = np.isfinite(data.measured)

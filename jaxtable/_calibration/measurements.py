@@ -266,6 +266,13 @@ def _moves(data: Measurements) -> dict:
     return out
 
 
+def require_measured(data: Measurements) -> None:
+    """Raise DataFileError where no cell of the data is measured (every measured column
+    empty or NaN): nothing to fit, predict or diagnose."""
+    if not np.isfinite(np.asarray(data.measured)).any():
+        raise DataFileError("no measured values in the data (every measured cell is empty)")
+
+
 def check_units(data: Measurements) -> None:
     """Refuse data whose measured columns move by a different order of magnitude than the
     commands: positions in metres or micrometres, angles in radians, where the file's units

@@ -39,7 +39,13 @@ from .fit import (
 )
 from .fit import validate as column_rms
 from .instruments import readings
-from .measurements import Measurements, check_alignment, check_commanded, check_units
+from .measurements import (
+    Measurements,
+    check_alignment,
+    check_commanded,
+    check_units,
+    require_measured,
+)
 from .model_file import FittedModel, load_fitted_model
 
 
@@ -149,6 +155,7 @@ def validate_model(
     compensation (stated, on a table with a lead) and its nominal table."""
     if register is not None and register < 1:
         raise ValueError(f"--register must be a positive number of rows; got {register}")
+    require_measured(data)
     check_units(data)
     table = model.table
     check_alignment(data, table)

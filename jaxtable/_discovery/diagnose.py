@@ -51,7 +51,7 @@ import numpy as np
 from .. import _params as params
 from .._calibration.fit import OUTLIERS, Calibration, Setup, fit, residual_jit, setup
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
-from .._calibration.measurements import Measurements
+from .._calibration.measurements import Measurements, require_measured
 from .._calibration.outliers import GrossError, without
 from .._calibration.outliers import screen as screen_gross_errors
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
@@ -520,6 +520,7 @@ def diagnose(
         )
         nominal, data = data, nominal
     log = log or (lambda msg: print(msg, file=sys.stderr))
+    require_measured(data)
     measured_rows = int(np.isfinite(np.asarray(data.measured)).any(axis=1).sum())
     if measured_rows <= NEIGHBOURS + 1:  # before any fit: the same refusal would come after
         raise TooFewRowsError(
