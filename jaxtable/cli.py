@@ -72,6 +72,13 @@ def _map(args) -> int:
     except ValueError as e:
         raise UsageError(str(e)) from None
     emap, summary = error_map(table, tol, grid, progress=True)
+    if summary["reachable"] == 0:
+        raise UsageError(
+            f"none of the {summary['poses']} poses of the {dofs[0]}-{dofs[1]} slice"
+            + (f" ({args.fixed})" if args.fixed else "")
+            + " is reachable (a leg outside its stroke or a joint past its bend limit "
+            "everywhere): nothing to map; choose --fixed inside the workspace"
+        )
     text = write_map_report(table, tol, emap, summary, args.out, dofs, args.n)
     print(text)
     return 0

@@ -23,6 +23,10 @@ def test_slice_layout():
         workspace_slice(("x", "q"))
     with pytest.raises(ValueError, match="repeated DOF"):
         workspace_slice(("x", "x"))
+    for n in (1, 0, (3, 0), (3, 2.5), (3, 3, 3)):  # a line of one point sat at -range
+        with pytest.raises(ValueError, match="whole number of at least 2"):
+            workspace_slice(("x", "yaw"), n)
+    assert workspace_slice(("x", "yaw"), (2, 3.0)).shape == (2, 3)
 
 
 @pytest.fixture(scope="module")
@@ -162,3 +166,12 @@ def test_map_cli_writes_report_and_refuses_bad_tolerances(tmp_path, capsys):
     bad.write_text("clearance = -1.0\n")
     assert main(["map", "--tolerances", str(bad), "--out", str(tmp_path)]) == 2
     assert "'clearance' must be >= 0" in capsys.readouterr().err
+    # a slice with no reachable pose (z = 900 mm), a slice of one point: refused, nothing
+    # written (it wrote a report of zeros and NaNs; the empty grid stopped with a traceback)
+    none = tmp_path / "none"
+    assert main(["map", "--n", "9", "--fixed", "z=900", "--out", str(none)]) == 2
+    assert "none of the 81 poses of the x-y slice (z=900) is reachable" in capsys.readouterr().err
+    assert main(["map", "--n", "1", "--out", str(none)]) == 2
+    assert "at least 2" in capsys.readouterr().err and not none.exists()
+    with pytest.raises(ValueError, match="no poses"):
+        error_map(jt.reference_table(), grid=np.zeros((0, 6)))

@@ -186,6 +186,8 @@ def error_map(
         grid = workspace_slice()
     elif not isinstance(grid, (Grid, PoseList)):
         grid = PoseList(np.asarray(grid, dtype=float).reshape(-1, 6))
+    if len(grid) == 0:
+        raise ValueError("error_map: the grid has no poses")
     sigmas = tuple(tolerances.sigma(s) for s in SOURCES)
     names = list(SOURCES) + ["total", "total (spiral uncompensated)"]
     hist = _Histograms((2, len(names)))  # rows: translation mm, rotation arcsec

@@ -117,6 +117,12 @@ def workspace_slice(dofs=("x", "y"), n=101, ranges=None, fixed=None) -> Grid:
     else:
         half = [float(r) if a < 3 else math.radians(float(r)) for a, r in zip(axes, ranges)]
     ns = [n] * len(axes) if np.ndim(n) == 0 else list(n)
+    if len(ns) != len(axes) or any(int(k) != k or k < 2 for k in ns):
+        raise ValueError(
+            f"n: points per slice axis, a whole number of at least 2 for each of {len(axes)} "
+            f"axes; got {n}"
+        )
+    ns = [int(k) for k in ns]
     values = tuple(tuple(np.linspace(-h, h, k)) for h, k in zip(half, ns))
     fx = tuple(np.zeros(6) if fixed is None else Workspace.to_internal(fixed))
     return Grid(tuple(axes), values, fx)
