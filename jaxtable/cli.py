@@ -40,6 +40,40 @@ class UsageError(ValueError):
     """A malformed command-line value."""
 
 
+def _whole(least: int):
+    """argparse type: a whole number of at least `least` (argparse names the option)."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+        if v < least:
+            raise argparse.ArgumentTypeError(f"{v} is below the least value, {least}")
+        return v
+
+    return parse
+
+
+def _number(low: float, *, above: bool = False, below: float | None = None):
+    """argparse type: a finite number ≥ `low` (> `low` with `above`; < `below` if given)."""
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+        ok = math.isfinite(v) and (v > low if above else v >= low)
+        if not ok or (below is not None and not v < below):
+            rule = f"{'above' if above else 'at least'} {low:g}" + (
+                f" and below {below:g}" if below is not None else ""
+            )
+            raise argparse.ArgumentTypeError(f"{text} is not {rule}")
+        return v
+
+    return parse
+
+
 def _parse_fixed(text: str, flag: str = "--fixed") -> list[float]:
     """'z=-50,yaw=5' -> 6 values in file units (mm / deg), others 0."""
     from ._errors import POSE_COLUMNS
@@ -544,7 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
     common(sp, "out/spiral")
     sp.add_argument(
         "--samples",
-        type=int,
+        type=_whole(1),
         default=20000,
         help="random poses in the combined-motion box (default 20000)",
     )
@@ -563,7 +597,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="tolerance file (TOML); default: the paper's budget",
     )
     sp.add_argument("--slice", default="x,y", help="two DOF to grid (default x,y)")
-    sp.add_argument("--n", type=int, default=101, help="points per slice axis (default 101)")
+    sp.add_argument("--n", type=_whole(2), default=101, help="points per slice axis (default 101)")
     sp.add_argument("--fixed", default="", help="the other DOF, e.g. 'z=-50,yaw=5' (mm, deg)")
     sp.set_defaults(func=_map)
 
@@ -577,10 +611,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--instrument", choices=["tracker6", "point3", "interferometer"], default="tracker6"
     )
     sp.add_argument("--plan", choices=["random", "x_line", "grid", "swing"], default="random")
-    sp.add_argument("--n", type=int, default=100, help="poses (random, swing)")
-    sp.add_argument("--seed", type=int, default=0)
-    sp.add_argument("--joint-sigma", type=float, default=0.010, help="mm (default 0.010)")
-    sp.add_argument("--zero-sigma", type=float, default=0.050, help="mm (default 0.050)")
+    sp.add_argument("--n", type=_whole(1), default=100, help="poses (random, swing)")
+    sp.add_argument("--seed", type=_whole(0), default=0)
+    sp.add_argument("--joint-sigma", type=_number(0.0), default=0.010, help="mm (default 0.010)")
+    sp.add_argument("--zero-sigma", type=_number(0.0), default=0.050, help="mm (default 0.050)")
     sp.add_argument("--frame", default="", help="instrument frame, e.g. 'x=50,yaw=2' (mm, deg)")
     sp.add_argument("--target", default="", help="target on the platform, e.g. 'z=80'")
     compensation(sp, default=True, what="the simulated controller")
@@ -612,7 +646,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also sample the posterior with emcee (corner plot, predictive bands)",
     )
-    sp.add_argument("--steps", type=int, default=2000, help="emcee steps per walker (2000)")
+    sp.add_argument("--steps", type=_whole(1), default=2000, help="emcee steps per walker (2000)")
     sp.set_defaults(func=_calibrate)
 
     sp = sub.add_parser(
@@ -638,11 +672,11 @@ def build_parser() -> argparse.ArgumentParser:
     outlier_options(sp)
     sp.add_argument(
         "--alpha",
-        type=float,
+        type=_number(0.0, above=True, below=1.0),
         default=0.01,
         help="false-alarm rate of the structure test (0.01; it does not depend on σ's scale)",
     )
-    sp.add_argument("--folds", type=int, default=5, help="k of the k-fold held-out score (5)")
+    sp.add_argument("--folds", type=_whole(2), default=5, help="k of the k-fold held-out score (5)")
     sp.set_defaults(func=_diagnose)
 
     sp = sub.add_parser(
@@ -656,7 +690,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(table=None)
     sp.add_argument(
         "--register",
-        type=int,
+        type=_whole(1),
         default=None,
         help="rows at the start of each new session that register its frame; the rest are "
         "predicted (default: all rows, which makes the result a fit, not a prediction)",
@@ -683,17 +717,19 @@ def build_parser() -> argparse.ArgumentParser:
         )
         dp.add_argument(
             "--leg-stiffness",
-            type=float,
+            type=_number(0.0, above=True),
             default=None,
             help="axial leg stiffness, N/mm (default: the model's compliance effect, else 2e4)",
         )
-        dp.add_argument("--payload", type=float, default=100.0, help="kg (default 100)")
+        dp.add_argument("--payload", type=_number(0.0), default=100.0, help="kg (default 100)")
         dp.add_argument("--json", default=None, help="JSON result (default: in OUT)")
 
     dp = dsub.add_parser("evaluate", help="every design criterion over the workspace")
     design_common(dp, "out/design")
-    dp.add_argument("--n-sweep", type=int, default=11, help="points per single-DOF sweep (11)")
-    dp.add_argument("--n-random", type=int, default=256, help="random box poses (256)")
+    dp.add_argument(
+        "--n-sweep", type=_whole(2), default=11, help="points per single-DOF sweep (11)"
+    )
+    dp.add_argument("--n-random", type=_whole(0), default=256, help="random box poses (256)")
     dp.set_defaults(func=_design_evaluate)
 
     dp = dsub.add_parser(
@@ -722,9 +758,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--lead-catalogue", default=None, help="leads to enumerate, e.g. 5,10,12.7,16,20"
     )
     dp.add_argument("--pareto", default=None, help="second criterion: the Pareto front with it")
-    dp.add_argument("--pareto-points", type=int, default=7, help="ε values on the front (7)")
-    dp.add_argument("--starts", type=int, default=4, help="gradient starts (4)")
-    dp.add_argument("--seed", type=int, default=0)
+    dp.add_argument("--pareto-points", type=_whole(2), default=7, help="ε values on the front (7)")
+    dp.add_argument("--starts", type=_whole(1), default=4, help="gradient starts (4)")
+    dp.add_argument("--seed", type=_whole(0), default=0)
     dp.add_argument(
         "--as-table",
         action="store_true",

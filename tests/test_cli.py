@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 import jaxtable as jt
 from jaxtable.cli import main
@@ -74,3 +75,32 @@ def test_calibrate_refuses_malformed_csv(tmp_path, capsys):
     )
     assert main(["calibrate", str(path), "--out", str(tmp_path)]) == 2
     assert "row 2, column 'cmd_z': 'oops' is not a number" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["simulate", "--n", "0"], "argument --n: 0 is below the least value, 1"),
+        (["simulate", "--n", "ten"], "argument --n: 'ten' is not a whole number"),
+        (["simulate", "--joint-sigma", "-0.01"], "argument --joint-sigma: -0.01 is not at least 0"),
+        (["simulate", "--zero-sigma", "nan"], "argument --zero-sigma: nan is not at least 0"),
+        (["spiral", "--samples", "-5"], "argument --samples: -5 is below the least value, 1"),
+        (["map", "--n", "0"], "argument --n: 0 is below the least value, 2"),
+        (["calibrate", "d.csv", "--steps", "0"], "argument --steps: 0 is below the least"),
+        (["diagnose", "--alpha", "1.5"], "argument --alpha: 1.5 is not above 0 and below 1"),
+        (["diagnose", "--folds", "1"], "argument --folds: 1 is below the least value, 2"),
+        (["validate", "m.toml", "d.csv", "--register", "0"], "argument --register: 0 is below"),
+        (["design", "evaluate", "--leg-stiffness", "-5"], "--leg-stiffness: -5 is not above 0"),
+        (["design", "evaluate", "--payload", "-10"], "argument --payload: -10 is not at least 0"),
+        (["design", "evaluate", "--n-sweep", "1"], "argument --n-sweep: 1 is below the least"),
+    ],
+)
+def test_counts_and_sizes_out_of_range_are_refused_by_the_parser(argv, said, tmp_path, capsys):
+    """Counts below their least value, negative σ, stiffness or payload, a false-alarm rate
+    outside (0, 1): refused before anything runs, naming the option (a count of 0 or a
+    negative one stopped `simulate` and `spiral` with a traceback; a negative σ or zero
+    sweep points ran)."""
+    with pytest.raises(SystemExit) as stop:
+        main(argv + ["--out", str(tmp_path / "out")])
+    assert stop.value.code == 2 and said in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -171,7 +171,11 @@ def test_map_cli_writes_report_and_refuses_bad_tolerances(tmp_path, capsys):
     none = tmp_path / "none"
     assert main(["map", "--n", "9", "--fixed", "z=900", "--out", str(none)]) == 2
     assert "none of the 81 poses of the x-y slice (z=900) is reachable" in capsys.readouterr().err
-    assert main(["map", "--n", "1", "--out", str(none)]) == 2
-    assert "at least 2" in capsys.readouterr().err and not none.exists()
+    with pytest.raises(SystemExit) as stop:  # argparse's refusal
+        main(["map", "--n", "1", "--out", str(none)])
+    assert stop.value.code == 2 and "argument --n: 1 is below the least value, 2" in (
+        capsys.readouterr().err
+    )
+    assert not none.exists()
     with pytest.raises(ValueError, match="no poses"):
         error_map(jt.reference_table(), grid=np.zeros((0, 6)))
