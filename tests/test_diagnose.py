@@ -116,16 +116,25 @@ EFFECT_NAMES = [
 
 
 def _check_single(which, seeds):
-    z = []
+    """z-scores of the planted effect's fitted parameters over `seeds`; each diagnosis must
+    select it first, leave nothing unexplained and predict held-out rows within 1.3 σ. A
+    dictionary term found beside it is a false discovery (the effect is in the library);
+    the dictionary's threshold allows those in 5 % of data sets, so over the seeds at most
+    the binomial 99 % bound (0 of 1, 2 of 5): "never" would fail a correct method over 5
+    seeds of each of the 7 effects 83 % of the time (1 − 0.95³⁵)."""
+    z, terms = [], []
     for seed in seeds:
         nominal, data, eff = case(which, seed)
         diag = diagnose(nominal, data, log=_quiet)
         assert diag.selected and diag.selected[0] == which, (seed, diag.selected)
-        assert diag.discovered == [], (seed, diag.as_json()["discovered"])  # never a term
+        terms += [(seed, f.candidate.label) for f in diag.discovered]
         assert not diag.unexplained, seed
         assert diag.heldout_rms_after <= 1.3, (seed, diag.heldout_rms_after)
         assert diag.heldout_rms_after < diag.heldout_rms_before
         z.append(_z_scores(diag, eff, which))
+    n = len(list(seeds))
+    allowed = 0 if n == 1 else binom.ppf(0.99, n, 0.05)
+    assert len({s for s, _ in terms}) <= allowed, terms
     z = np.concatenate(z)
     return z
 
