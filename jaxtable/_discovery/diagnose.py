@@ -61,7 +61,13 @@ from .._table import Table
 from .._threads import one_blas_thread
 from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
 from .gp import ResidualGP, residual_gp
-from .structure import NEIGHBOURS, StructureTest, TooFewRowsError, structure_test
+from .structure import (
+    NEIGHBOURS,
+    StructureTest,
+    TooFewRowsError,
+    enough_rows,
+    structure_test,
+)
 
 GEOMETRY = params.GEOMETRY
 
@@ -522,7 +528,7 @@ def diagnose(
     log = log or (lambda msg: print(msg, file=sys.stderr))
     require_measured(data)
     measured_rows = int(np.isfinite(np.asarray(data.measured)).any(axis=1).sum())
-    if measured_rows <= NEIGHBOURS + 1:  # before any fit: the same refusal would come after
+    if not enough_rows(measured_rows):  # before any fit: structure_test's rule, refused later
         raise TooFewRowsError(
             f"a diagnosis needs more than {NEIGHBOURS + 1} measured stops (its structure test "
             f"compares neighbouring stops); {measured_rows} here"

@@ -50,6 +50,12 @@ class TooFewRowsError(ValueError):
     """The structure test needs more fitted rows than the data have."""
 
 
+def enough_rows(n: int, neighbours_k: int = NEIGHBOURS) -> bool:
+    """Whether `n` rows are enough for the structure test: each needs `neighbours_k`
+    neighbours and one row more to compare with."""
+    return n > neighbours_k + 1
+
+
 @dataclass(frozen=True)
 class StructureTest:
     """Outcome of `structure_test`.
@@ -263,7 +269,7 @@ def structure_test(
     draws."""
     w = whitened(cal, st, tol)
     rows = w.rows
-    if len(rows) <= neighbours_k + 1:
+    if not enough_rows(len(rows), neighbours_k):
         raise TooFewRowsError(
             f"the structure test needs more than {neighbours_k + 1} fitted rows; {len(rows)} here"
         )
