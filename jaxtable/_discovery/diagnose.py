@@ -79,6 +79,13 @@ def _chi2_sf(x: float, dof: int) -> float:
     return float(jax.scipy.special.gammaincc(dof / 2.0, x / 2.0))
 
 
+def equal_legs_p(per_leg: Calibration, shared: Calibration) -> float:
+    """Likelihood-ratio test of six identical cylinders: P(χ²_k ≥ χ²_shared − χ²_per-leg),
+    k the rank the per-leg form adds, both fits made with the same weights. Small: the data
+    reject one coefficient for all legs."""
+    return _chi2_sf(max(shared.chi2 - per_leg.chi2, 0.0), per_leg.rank - shared.rank)
+
+
 def applicable(name: str, nominal: Table, data: Measurements) -> tuple[bool, str]:
     """Whether the data can reveal effect `name` (and why not)."""
     cls = EFFECTS[name]
@@ -141,6 +148,9 @@ class Candidate:
     # p-value of the structure test on this candidate's fit, where the share rule asked for it
     # (the effect is named only if it explains the share or leaves no structure): None if not
     structure_after: float | None = None
+    # per-leg form of an effect with a shared form: p-value of the likelihood-ratio test of
+    # equal legs (its χ² against the shared form's, `equal_legs_p`); None otherwise
+    equal_legs_p: float | None = None
 
     def as_json(self) -> dict:
         return {
@@ -151,6 +161,7 @@ class Candidate:
             "heldout_rms": self.heldout_rms,
             "excess_chi2_share": self.share,
             "structure_p_after": self.structure_after,
+            "equal_legs_p": self.equal_legs_p,
             "params": {
                 k: {"value": v.tolist(), "std": s.tolist()} for k, (v, s) in self.params.items()
             },
@@ -669,13 +680,37 @@ def diagnose(
         excess = max(current.chi2 - current.dof, 3.0 * math.sqrt(2.0 * max(current.dof, 1)))
         for c in cands:
             c.share = (current.chi2 - c.chi2) / excess
+        by_form = {c.effect: c for c in cands}
+        for c in cands:  # per-leg forms: do the data reject equal legs?
+            if params.is_shared(c.effect) or len(params.effect_forms(c.effect)) < 2:
+                continue
+            forms = params.effect_forms(c.effect)
+            ref = current if forms[1] in model else getattr(by_form.get(forms[1]), "fit", None)
+            if ref is not None:
+                c.equal_legs_p = equal_legs_p(c.fit, ref)
         for c in cands:
             log(
                 f"  candidate {c.effect:14s} dBIC = {c.delta_bic:10.1f}  held-out gain "
                 f"{heldout_text(100 * c.heldout_gain, '+6.1f', ' %'):>8s}  explains "
                 f"{100 * c.share:5.0f} % of the excess"
+                + ("" if c.equal_legs_p is None else f"; equal legs p = {c.equal_legs_p:.2g}")
             )
         paying = [c for c in strong if c.heldout_gain > min_gain and explains(c)]
+        # a shared form in the model: its per-leg form replaces it where the data reject
+        # equal legs at `alpha` (likelihood ratio) and it does not lose on held-out rows,
+        # after every effect that pays is in (so the legs' differences are not another
+        # effect's signal). ΔBIC would keep a false tie until Δχ² > 5 ln n + 10 (p ~ 1e-6 at
+        # 150 stops), and a false tie biases every leg by the spread between them; a false
+        # per-leg form costs five parameters' variance and no bias
+        upgrades = [
+            c
+            for c in cands
+            if c.equal_legs_p is not None
+            and params.effect_forms(params.form_effect(c.effect))[-1] in model
+            and c.equal_legs_p < alpha
+            and c.heldout_gain > 0
+        ]
+        paying += [c for c in sorted(upgrades, key=lambda c: c.equal_legs_p) if c not in paying]
         if len(_forms_of(model, base)) >= max_effects:
             have = [params.form_effect(m) for m in model]
             paying = [c for c in paying if params.form_effect(c.effect) in have]  # upgrades
@@ -698,7 +733,7 @@ def diagnose(
                 if b is not None
                 else "  dictionary: every term absorbed"
             )
-        consistent = not structure.structure and not strong and term is None
+        consistent = not structure.structure and not strong and not upgrades and term is None
         step = Step(
             ["geometry"] + model,
             current.chi2,
@@ -742,9 +777,12 @@ def diagnose(
                 weight=trial.weight,
                 theta0=trial.theta,
             )
-            l_left = (both.chi2 - trial.chi2) + (both.rank - trial.rank) * math.log(
-                both.n_obs
-            ) < -bic_threshold
+            if lib in upgrades:  # the per-leg form by its own test (equal legs rejected)
+                l_left = equal_legs_p(both, trial) < alpha
+            else:
+                l_left = (both.chi2 - trial.chi2) + (both.rank - trial.rank) * math.log(
+                    both.n_obs
+                ) < -bic_threshold
             log(
                 f"  library {lib.effect} vs term {cand.label}: the term "
                 f"{'adds' if t_left else 'adds nothing'} to {lib.effect}, {lib.effect} "
@@ -816,7 +854,14 @@ def diagnose(
         best = lib
         step.added = best.effect
         step.decision = f"add {best.effect}"
-        log(f"  -> add {params.form_label(best.effect)}")
+        if best in upgrades:
+            step.decision = (
+                f"{best.effect} per leg in place of one for all legs: the legs differ "
+                f"(equal legs p = {best.equal_legs_p:.2g})"
+            )
+        log(
+            f"  -> {step.decision if best in upgrades else 'add ' + params.form_label(best.effect)}"
+        )
         model = params.with_form(model, best.effect)
         current = best.fit if stated else fit_model(model, theta0=best.fit.theta)
         heldout_current = best.heldout_rms

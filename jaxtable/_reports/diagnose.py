@@ -300,16 +300,18 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
             + f". Decision: {step.decision}.",
             "",
             "| candidate | ΔBIC | held-out gain | share of excess χ² | structure left "
-            "(p) | fitted parameters |",
-            "|---|---|---|---|---|---|",
+            "(p) | equal legs (p) | fitted parameters |",
+            "|---|---|---|---|---|---|---|",
         ]
         for c in step.candidates:
             # the structure test on the candidate's fit, where the share fell short
             left = "–" if c.structure_after is None else f"{c.structure_after:.3g}"
+            # a per-leg form against its shared form: the likelihood-ratio test of equal legs
+            equal = "–" if c.equal_legs_p is None else f"{c.equal_legs_p:.3g}"
             lines.append(
                 f"| {vocab.form_label(c.effect)} | {c.delta_bic:.1f} | "
                 f"{heldout_text(100 * c.heldout_gain, '+.1f', ' %')} | "
-                f"{100 * c.share:.0f} % | {left} | {_fmt_params(c.params)} |"
+                f"{100 * c.share:.0f} % | {left} | {equal} | {_fmt_params(c.params)} |"
             )
         lines.append("")
     lines += _dictionary_lines(diag)
