@@ -176,6 +176,23 @@ def check(table, effects, names, *, allow_shared: bool = False) -> None:
             )
 
 
+def check_distinct(names, what: str = "parameter") -> None:
+    """Raise ValueError where a list a person wrote names one thing twice: a repeated entry,
+    or a field in both its forms (`spiral.lead` and `spiral.lead[all]`: the shared column
+    is the sum of the per-leg ones, so one direction of the pair is free)."""
+    seen = set()
+    for name in names:
+        if name in seen:
+            raise ValueError(f"{what} '{name}' is given twice")
+        seen.add(name)
+    for name in names:
+        if is_shared(name) and leaf(name) in seen:
+            raise ValueError(
+                f"'{leaf(name)}' and '{name}' are two forms of one field: fit it per leg or "
+                f"as one number for all legs, not both"
+            )
+
+
 def get(table, effects, name: str):
     """The array of parameter `name` in the model (table, effects); a shared parameter
     (`thermal.alpha[all]`) -> the per-leg leaf it moves."""

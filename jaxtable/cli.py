@@ -74,6 +74,19 @@ def _number(low: float, *, above: bool = False, below: float | None = None):
     return parse
 
 
+def _names(text: str, flag: str) -> tuple[str, ...]:
+    """'a, b,c' -> ('a', 'b', 'c'); refuses a name given twice, or a field in both its forms
+    (`params.check_distinct`), naming the option."""
+    from . import _params as params
+
+    names = tuple(t.strip() for t in text.split(",") if t.strip())
+    try:
+        params.check_distinct(names, "name")
+    except ValueError as e:
+        raise UsageError(f"{flag}: {e}") from None
+    return names
+
+
 def _parse_fixed(text: str, flag: str = "--fixed") -> list[float]:
     """'z=-50,yaw=5' -> 6 values in file units (mm / deg), others 0."""
     from ._errors import POSE_COLUMNS
@@ -205,9 +218,9 @@ def _calibrate(args) -> int:
     from ._discovery.structure import TooFewRowsError, structure_test
     from ._reports.calibrate import write_calibration_report
 
+    free = _names(args.free, "--free")
     table = _table(args.table)
     data = load_measurements(args.data)
-    free = tuple(f.strip() for f in args.free.split(",") if f.strip())
     print(f"calibrating {', '.join(free)} on {len(data)} rows ...", file=sys.stderr)
     try:
         st, cal = fit_screened(
@@ -265,8 +278,8 @@ def _diagnose(args) -> int:
     else:
         data = load_measurements(args.data)
         source = str(args.data)
-    base = tuple(b.strip() for b in args.base.split(",") if b.strip())
-    library = tuple(b.strip() for b in args.effects.split(",") if b.strip()) or tuple(EFFECTS)
+    base = _names(args.base, "--base")
+    library = _names(args.effects, "--effects") or tuple(EFFECTS)
     for name in base + library:
         if name not in EFFECTS:
             raise UsageError(f"unknown effect '{name}'; known: {', '.join(EFFECTS)}")
@@ -423,7 +436,7 @@ def _design_optimize(args) -> int:
     from ._reports.design import write_optimization_report
 
     design, ws, text = _design_inputs(args)
-    vary = [v.strip() for v in args.vary.split(",") if v.strip()]
+    vary = list(_names(args.vary, "--vary"))
     if not args.as_table:
         try:
             design = Design(SymmetricDesign.from_table(design.table()), design.hardware)

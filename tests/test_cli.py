@@ -104,3 +104,40 @@ def test_counts_and_sizes_out_of_range_are_refused_by_the_parser(argv, said, tmp
         main(argv + ["--out", str(tmp_path / "out")])
     assert stop.value.code == 2 and said in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["calibrate", "d.csv", "--free", "zero_lengths,zero_lengths"], "--free: name 'zero_"),
+        (
+            ["calibrate", "d.csv", "--free", "spiral.lead, spiral.lead[all]"],
+            "--free: 'spiral.lead' and 'spiral.lead[all]' are two forms of one field",
+        ),
+        (["diagnose", "--base", "backlash,backlash"], "--base: name 'backlash' is given twice"),
+        (["diagnose", "--effects", "spiral,,spiral"], "--effects: name 'spiral' is given twice"),
+    ],
+)
+def test_a_list_option_naming_one_thing_twice_is_refused(argv, said, tmp_path, capsys):
+    """A name repeated in a list option, or a field free in both its forms (the shared
+    column is the sum of the per-leg ones: one direction of the pair is free, which the fit
+    reported as unidentifiable after the work), is refused before anything runs; the
+    repeats were accepted silently."""
+    assert main(argv + ["--out", str(tmp_path / "out")]) == 2
+    assert said in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_api_refuses_the_same_repeats():
+    from jaxtable._discovery.diagnose import diagnose
+
+    table = jt.reference_table()
+    data = jt.load_measurements(jt.__path__[0] + "/data/example_measurements.csv")
+    with pytest.raises(ValueError, match="'zero_lengths' is given twice"):
+        jt.calibrate(table, data, ("zero_lengths", "zero_lengths"))
+    with pytest.raises(ValueError, match="two forms of one field"):
+        jt.calibrate(
+            table, data, ("thermal.alpha[all]", "thermal.alpha"), effects={"thermal": jt.Thermal()}
+        )
+    with pytest.raises(ValueError, match="effect 'backlash' is given twice"):
+        diagnose(table, data, base=("backlash", "backlash"))

@@ -1074,6 +1074,7 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
     `setup`'s keywords (effects, compensated, estimate_frame, sigma) and `fit`'s."""
     if outliers not in OUTLIERS:
         raise ValueError(f"outliers must be one of {OUTLIERS}; got {outliers!r}")
+    params.check_distinct(tuple(free))
     setup_kw = {
         k: kw.pop(k) for k in ("effects", "compensated", "estimate_frame", "sigma") if k in kw
     }

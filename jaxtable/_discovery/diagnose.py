@@ -566,6 +566,8 @@ def diagnose(
         diag.set_aside = sorted(set_aside, key=lambda g: -abs(g.z))
         return diag
     library = list(EFFECTS) if library is None else list(library)
+    params.check_distinct(tuple(base), "effect")
+    params.check_distinct(tuple(library), "effect")
     for name in list(base) + library:
         if name not in EFFECTS:
             raise ValueError(f"unknown effect '{name}'; known: {', '.join(EFFECTS)}")
