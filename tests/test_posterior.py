@@ -122,3 +122,16 @@ def test_corner_plot_and_predictive_bands(case, chain, tmp_path):
     assert np.all(np.abs(true_err - bands.bands[1]) < 2.5 * half)
     # the bands are not degenerate: L0 errors of ~50 µm are known to a few µm
     assert np.all(half[:, :3].max(0) > 1e-4)
+
+
+def test_predictive_bands_name_the_poses_the_fitted_table_cannot_reach(case, chain):
+    """A forward solve of the fitted table that fails (here: one Newton step allowed from
+    the commanded pose) is a KinematicsError naming the poses, as everywhere else, not a
+    RuntimeError the command line would print as a traceback."""
+    from jaxtable._errors import KinematicsError
+    from jaxtable._forward import ForwardOptions
+
+    table, true, st, cal = case
+    poses = plan_x_line(100.0, 200.0)
+    with pytest.raises(KinematicsError, match=r"failed at 5 of the 5 commanded pose\(s\)"):
+        predictive_bands(st, chain, poses, n_samples=2, options=ForwardOptions(max_steps=1))

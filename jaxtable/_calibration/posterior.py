@@ -36,7 +36,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from .._api import actuator_command
-from .._errors import renamed_argument
+from .._errors import KinematicsError, renamed_argument
 from .._forward import RESULTS, ForwardOptions, forward_one
 from .._jit import jit
 from .._rotation import pose_error
@@ -412,9 +412,12 @@ def predictive_bands(
     err, ok = _pose_errors(thetas, st.problem, st.layout, s, jnp.asarray(poses), options)
     err, ok = np.asarray(err), np.asarray(ok)
     if not ok[0].all():
-        raise RuntimeError(
-            "forward kinematics of the LM table failed at pose(s) "
-            f"{(np.flatnonzero(~ok[0]) + 1).tolist()[:10]}"
+        bad = np.flatnonzero(~ok[0]) + 1
+        raise KinematicsError(
+            f"forward kinematics of the fitted (LM) table failed at {len(bad)} of the "
+            f"{len(poses)} commanded pose(s): {bad.tolist()[:10]}"
+            + (" ..." if len(bad) > 10 else "")
+            + " (1-based); are they inside the workspace?"
         )
     samp = np.where(ok[1:, :, None], err[1:], np.nan)
     bands = np.nanpercentile(samp, pct, axis=0)
