@@ -14,6 +14,7 @@ from jaxtable._calibration.fit import fit
 from jaxtable._calibration.instruments import tracker6
 from jaxtable._calibration.simulate import perturb_table, plan_random, simulate
 from jaxtable._discovery.diagnose import diagnose, discovery_setup, equal_legs_p
+from jaxtable._reports.diagnose import markdown
 
 N = 100
 
@@ -145,6 +146,14 @@ def test_diagnose_fits_the_form_the_data_support(spread, form):
     saved = np.asarray(diag.fitted_model().effects["thermal"].alpha)
     np.testing.assert_allclose(saved, np.broadcast_to(v, (6,)), rtol=1e-12)
     assert not diag.unexplained
+    # the test of equal legs on the first step: the per-leg form against the shared one
+    first = {c.effect: c for c in diag.steps[0].candidates}
+    p_equal = first["thermal"].equal_legs_p
+    assert first["thermal"].as_json()["equal_legs_p"] == p_equal
+    assert first["thermal[all]"].equal_legs_p is None
+    assert (p_equal < 0.01) == (form == "thermal"), p_equal
+    text = markdown(diag, [], "test")
+    assert ("the data do not reject equal legs" in text) == (form == "thermal[all]")
 
 
 def test_a_weak_shared_effect_that_leaves_no_structure_is_named():

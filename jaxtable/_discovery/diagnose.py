@@ -368,6 +368,18 @@ class Diagnosis:
         """Candidates of the first step (each effect added to the base model), ranked."""
         return self.steps[0].candidates if self.steps else []
 
+    def per_leg_candidate(self, name: str) -> "Candidate | None":
+        """For an effect selected in its shared form: its per-leg form as the last step
+        scored it against the final model (`equal_legs_p`, the per-leg values and σ);
+        None otherwise."""
+        last = self.steps[-1] if self.steps else None
+        if last is None or last.fit is not self.final:
+            return None
+        for c in last.candidates:
+            if c.effect == name and c.equal_legs_p is not None:
+                return c
+        return None
+
     def effect_params(self, name: str) -> dict:
         """Fitted parameters of a selected effect: field -> (value, std); one value for a
         field its shared form ties (`selected_forms`)."""

@@ -325,6 +325,15 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         lines += ["## Fitted effect parameters (final model, ±1σ)", ""]
         for name, form in zip(diag.selected, diag.selected_forms):
             lines.append(f"- **{vocab.form_label(form)}**: {_fmt_params(diag.effect_params(name))}")
+            fine = diag.per_leg_candidate(name) if form != name else None
+            if fine is not None:  # the ±1σ is the common value's, given equal legs
+                f, (_, s) = next(iter(fine.params.items()))
+                lines.append(
+                    f"  (the data do not reject equal legs, p = {fine.equal_legs_p:.2g}; the "
+                    f"±σ is the legs' common value's: fitted per leg, each leg's {f} has "
+                    f"σ {s.min():.2g}–{s.max():.2g} {vocab.UNITS.get(f, '')}, and a leg can "
+                    f"differ from the common value by a few of these σ unseen)"
+                )
             lines.append(f"  (prior source: {EFFECTS[name].source})")
         lines.append("")
     lines += ["## Figures", ""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
