@@ -18,6 +18,7 @@ objective among the candidates that meet every constraint (else the least violat
 import itertools
 import re
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -275,7 +276,7 @@ def optimize_design(
     design: Design,
     vary: list[str],
     objective: str,
-    constraints: list[Constraint] = (),
+    constraints: Sequence[Constraint] = (),
     *,
     workspace=None,
     bounds: dict | None = None,
@@ -287,7 +288,7 @@ def optimize_design(
     n_random: int = 64,
     progress: bool = False,
     epsilon: tuple | None = None,
-) -> DesignOptimum:
+) -> DesignOptimum | list[tuple[Design, dict, bool]]:
     """Optimise `objective` (a CRITERIA key; its sense says min or max) over the variables
     `vary` of `design`, subject to `constraints`.
 
@@ -297,7 +298,8 @@ def optimize_design(
     enumerated over its 2⁶ choices and `lead` over `lead_catalogue` when one is given (one
     lead for all legs). Candidates are compared on the exact criteria over the full pose set
     (`assess` defaults). `epsilon` = (criterion, op, values) adds one ε-constraint per value
-    (the Pareto front: see `pareto_front`)."""
+    (the Pareto front: see `pareto_front`); it then returns, per value, (design, exact
+    criteria, feasible) instead of a DesignOptimum."""
     check_criterion(objective)
     vary = list(dict.fromkeys(vary))
     if not vary:
@@ -449,7 +451,7 @@ def pareto_front(
     vary: list[str],
     objective: str,
     second: str,
-    constraints: list[Constraint] = (),
+    constraints: Sequence[Constraint] = (),
     *,
     n_points: int = 7,
     progress: bool = False,
