@@ -210,7 +210,7 @@ def _simulate(args) -> int:
 
 
 def _calibrate(args) -> int:
-    from ._calibration.fit import fit_screened
+    from ._calibration.fit import check_physical, fit_screened
     from ._calibration.measurements import load_measurements
     from ._calibration.outliers import without
     from ._calibration.posterior import posterior, predictive_bands
@@ -233,6 +233,7 @@ def _calibrate(args) -> int:
             noise=args.noise,
             outliers="keep" if args.keep_outliers else "set_aside",
         )
+        check_physical(cal)  # before anything is written
     except ValueError as e:
         raise UsageError(f"{args.data}: {e}") from None
     data = without(data, cal.set_aside or [])  # what was fitted
@@ -262,6 +263,7 @@ def _calibrate(args) -> int:
 
 
 def _diagnose(args) -> int:
+    from ._calibration.fit import check_physical
     from ._calibration.measurements import load_measurements
     from ._discovery.diagnose import diagnose, group_label
     from ._effects import EFFECTS
@@ -298,6 +300,7 @@ def _diagnose(args) -> int:
             folds=args.folds,
             outliers="keep" if args.keep_outliers else "set_aside",
         )
+        check_physical(diag.final)  # before anything is written
     except ValueError as e:
         raise UsageError(f"{source}: {e}") from None
     paths = write_report(diag, out, source, json_path)

@@ -792,3 +792,24 @@ def test_validate_cli_writes_json_report_and_figures(table, sessions, tmp_path):
         warnings.simplefilter("error", RuntimeWarning)
         assert main(["validate", str(path), str(tmp_path / "b.csv"), "--out", str(out)]) == 0
     assert json.loads((out / "validation.json").read_text())["rows_predicted"] == 0
+
+
+def test_a_fit_that_leaves_no_physical_table_is_refused_before_anything_is_written(
+    tmp_path, capsys
+):
+    """60 stops with only the tracker's x reading (simulated), all 42 geometric parameters
+    free: the fit does not converge and moves joints by ~200 mm along directions the data
+    barely determine, leaving home lengths outside the stroke. `calibrate` used to stop with
+    "malformed table" while saving, after an empty output folder was made; it now says what
+    happened and what to do, exit 2, nothing written."""
+    data = Path(__file__).parent / "data" / "x_only_60_stops.csv"
+    out = tmp_path / "out"
+    assert main(["calibrate", str(data), "--compensated", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "the fitted table is not physical (leg 2: home length" in err, err
+    assert "fit fewer parameters" in err and not out.exists()
+    # the zero lengths alone are determined by the same readings and give a physical table
+    assert (
+        main(["calibrate", str(data), "--compensated", "--free", "zero_lengths", "--out", str(out)])
+        == 0
+    )

@@ -29,12 +29,12 @@ from .._api import actuator_command
 from .._batch import SMALL_BATCH, _pad_rows, _slice_rows
 from .._context import Context, directions, run_time
 from .._effects import resolve_effects
-from .._errors import POSE_COLUMNS, KinematicsError
+from .._errors import POSE_COLUMNS, KinematicsError, TableFileError
 from .._forward import RESULTS, ForwardOptions, forward_one
 from .._jit import jit
 from .._kinematics import in_stroke
 from .._rotation import euler_from_matrix, wrap_reading_difference
-from .._table import Table, replace
+from .._table import Table, check_table, replace
 from .._threads import one_blas_thread
 from .instruments import observe
 from .measurements import (
@@ -1066,6 +1066,25 @@ def calibrate(
         method=method,
         outliers=outliers,
     )[1]
+
+
+def check_physical(cal: "Calibration") -> None:
+    """Raise KinematicsError where a fit left a table that is not a hexapod the table file
+    accepts (home lengths outside the stroke, ...): the fit moved directions the data
+    barely determine, typically too many free parameters for the columns and stops
+    measured. Said before anything is written, with what to do about it."""
+    try:
+        check_table(cal.table)
+    except TableFileError as e:
+        problems = str(e).split("\n", 1)[-1].strip().replace("\n  ", "; ")
+        raise KinematicsError(
+            f"the fitted table is not physical ({problems}): the fit "
+            + ("did not converge" if not cal.converged else "converged")
+            + f" in {cal.steps} steps and moved directions these data barely determine "
+            f"({cal.n_obs} readings for {len(cal.value)} parameters, "
+            f"{len(cal.unidentifiable)} combination(s) undetermined); fit fewer parameters "
+            "(e.g. --free zero_lengths), or measure more columns or stops"
+        ) from None
 
 
 def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_aside", **kw):
