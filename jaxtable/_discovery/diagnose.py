@@ -695,13 +695,16 @@ def diagnose(
         for c in cands:
             c.share = (current.chi2 - c.chi2) / excess
         by_form = {c.effect: c for c in cands}
+        upgradable = []  # per-leg forms of a shared form in the model
         for c in cands:  # per-leg forms: do the data reject equal legs?
-            if params.is_shared(c.effect) or len(params.effect_forms(c.effect)) < 2:
+            forms = () if params.is_shared(c.effect) else params.effect_forms(c.effect)
+            if len(forms) < 2:
                 continue
-            forms = params.effect_forms(c.effect)
-            ref = current if forms[1] in model else getattr(by_form.get(forms[1]), "fit", None)
-            if ref is not None:
-                c.equal_legs_p = equal_legs_p(c.fit, ref)
+            if forms[1] in model:
+                c.equal_legs_p = equal_legs_p(c.fit, current)
+                upgradable.append(c)
+            elif forms[1] in by_form:
+                c.equal_legs_p = equal_legs_p(c.fit, by_form[forms[1]].fit)
         for c in cands:
             log(
                 f"  candidate {c.effect:14s} dBIC = {c.delta_bic:10.1f}  held-out gain "
@@ -716,14 +719,7 @@ def diagnose(
         # effect's signal). ΔBIC would keep a false tie until Δχ² > 5 ln n + 10 (p ~ 1e-6 at
         # 150 stops), and a false tie biases every leg by the spread between them; a false
         # per-leg form costs five parameters' variance and no bias
-        upgrades = [
-            c
-            for c in cands
-            if c.equal_legs_p is not None
-            and params.effect_forms(params.form_effect(c.effect))[-1] in model
-            and c.equal_legs_p < alpha
-            and c.heldout_gain > 0
-        ]
+        upgrades = [c for c in upgradable if c.equal_legs_p < alpha and c.heldout_gain > 0]
         paying += [c for c in sorted(upgrades, key=lambda c: c.equal_legs_p) if c not in paying]
         if len(_forms_of(model, base)) >= max_effects:
             have = [params.form_effect(m) for m in model]
@@ -867,15 +863,15 @@ def diagnose(
             break
         best = lib
         step.added = best.effect
-        step.decision = f"add {best.effect}"
         if best in upgrades:
             step.decision = (
                 f"{best.effect} per leg in place of one for all legs: the legs differ "
                 f"(equal legs p = {best.equal_legs_p:.2g})"
             )
-        log(
-            f"  -> {step.decision if best in upgrades else 'add ' + params.form_label(best.effect)}"
-        )
+            log(f"  -> {step.decision}")
+        else:
+            step.decision = f"add {best.effect}"
+            log(f"  -> add {params.form_label(best.effect)}")
         model = params.with_form(model, best.effect)
         current = best.fit if stated else fit_model(model, theta0=best.fit.theta)
         heldout_current = best.heldout_rms
