@@ -200,6 +200,18 @@ def test_two_hidden_effects_are_both_selected(which):
     assert set(diag.selected) == set(which.split("+")), diag.selected
     assert not diag.unexplained
     assert diag.heldout_rms_after <= 1.3
+    # the search keeps the (N·6, P) Jacobians of the final fit only; the records of the
+    # fits it scored keep their values, σ and residuals
+    assert len(diag.steps) >= 3 and diag.steps[-1].fit is diag.final
+    assert diag.final.jacobian is not None and diag.final.jacobian_full is not None
+    records = [s.fit for s in diag.steps[:-1]] + [c.fit for s in diag.steps for c in s.candidates]
+    assert all(f.jacobian is None and f.jacobian_full is None for f in records)
+    assert all(f.redundancy is None and f.residual.shape == (len(data), 6) for f in records)
+    first = diag.steps[0].candidates[0]
+    effect = first.effect.removesuffix("[all]")
+    for k, (value, std) in first.params.items():
+        np.testing.assert_array_equal(first.fit.parameter(f"{effect}.{k}")[0], value)
+        np.testing.assert_array_equal(first.fit.parameter(f"{effect}.{k}")[1], std)
 
 
 def _null_selections(seeds):

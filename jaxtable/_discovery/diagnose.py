@@ -143,6 +143,8 @@ class Candidate:
     chi2: float
     rank: int
     params: dict
+    # the candidate's fit; once its step is decided, without its Jacobians
+    # (`Calibration.light`): a long search does not hold every candidate's (N·6, P) arrays
     fit: Calibration | None = None
     share: float = 0.0  # share of the model's excess χ² this effect explains
     # p-value of the structure test on this candidate's fit, where the share rule asked for it
@@ -166,6 +168,19 @@ class Candidate:
                 k: {"value": v.tolist(), "std": s.tolist()} for k, (v, s) in self.params.items()
             },
         }
+
+
+def _lighten(steps: list) -> None:
+    """Once the last of `steps` is decided: its candidates' fits, and the fits of the steps
+    before it, become their `Calibration.light` records (a search scores ~15 candidates a
+    step, each fit holding (N·6, P) Jacobians). The last step's fit stays whole: it may be
+    the final model's."""
+    for c in steps[-1].candidates:
+        if c.fit is not None:
+            c.fit = c.fit.light()
+    for step in steps[:-1]:
+        if step.fit is not None:
+            step.fit = step.fit.light()
 
 
 @dataclass
@@ -659,6 +674,8 @@ def diagnose(
         return np.where(mask, ref.weight / np.where(mask, cal.weight, 1.0), 0.0)
 
     while True:
+        if steps:  # the last step is decided: its records need no Jacobians
+            _lighten(steps)
         # candidates are scored with the current model's weights (stated σ, or the σ
         # estimated for the current model), so their χ² compare with its χ²
         p_chi2 = _chi2_sf(current.chi2, current.dof) if stated else float("nan")
@@ -669,6 +686,7 @@ def diagnose(
             f"model {['geometry'] + model}: chi2/dof = {current.chi2:.1f}/{current.dof}, "
             f"RMS = {rms:.3f} sigma; {structure.words()}"
         )
+        heldout_current = heldout_rms(current, fold_rows, mask)
         cands = []
         for name in pool:
             # a form already in, or a shared form where the per-leg one is in: not a step
@@ -684,13 +702,14 @@ def diagnose(
             dbic = (cal.chi2 - current.chi2) + (cal.rank - current.rank) * math.log(cal.n_obs)
             effect = params.form_effect(name)
             fitted = {f: cal.parameter(f"{effect}.{f}") for f in EFFECTS[effect].fields}
-            cands.append(Candidate(name, float(dbic), None, None, cal.chi2, cal.rank, fitted, cal))
+            h = heldout_rms(cal, fold_rows, mask)
+            forms = () if params.is_shared(name) else params.effect_forms(name)
+            if dbic >= -bic_threshold and not (len(forms) > 1 and forms[1] in model):
+                cal = cal.light()  # neither added nor an upgrade: only its record is kept
+            gain = 1.0 - h / heldout_current
+            cands.append(Candidate(name, float(dbic), gain, h, cal.chi2, cal.rank, fitted, cal))
         cands.sort(key=lambda c: c.delta_bic)
         strong = [c for c in cands if c.delta_bic < -bic_threshold]
-        heldout_current = heldout_rms(current, fold_rows, mask)
-        for c in cands:
-            c.heldout_rms = heldout_rms(c.fit, fold_rows, mask)
-            c.heldout_gain = 1.0 - c.heldout_rms / heldout_current
         excess = max(current.chi2 - current.dof, 3.0 * math.sqrt(2.0 * max(current.dof, 1)))
         for c in cands:
             c.share = (current.chi2 - c.chi2) / excess
@@ -875,6 +894,7 @@ def diagnose(
         model = params.with_form(model, best.effect)
         current = best.fit if stated else fit_model(model, theta0=best.fit.theta)
         heldout_current = best.heldout_rms
+    _lighten(steps)
     final = current
     for f in found:  # the coefficients of the final, joint fit
         pick = [final.names.index(k) for k in f.candidate.keys]
