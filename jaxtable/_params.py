@@ -176,6 +176,12 @@ def check(table, effects, names, *, allow_shared: bool = False) -> None:
             )
 
 
+def as_names(names) -> tuple:
+    """A list of names a person passed, as a tuple: one string is one name (`"zero_lengths"`,
+    not its letters)."""
+    return (names,) if isinstance(names, str) else tuple(names)
+
+
 def check_distinct(names, what: str = "parameter") -> None:
     """Raise ValueError where a list a person wrote names one thing twice: a repeated entry,
     or a field in both its forms (`spiral.lead` and `spiral.lead[all]`: the shared column

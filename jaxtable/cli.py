@@ -4,6 +4,7 @@ reference table) and writes its figures and a Markdown report into --out DIR."""
 import argparse
 import math
 import sys
+import warnings
 from pathlib import Path
 
 from ._analysis.tolerances import ToleranceFileError
@@ -288,18 +289,20 @@ def _diagnose(args) -> int:
     out = Path(args.out)
     json_path = Path(args.json) if args.json else out / "diagnosis.json"
     try:
-        diag = diagnose(
-            table,
-            data,
-            base=base,
-            library=library,
-            compensated=args.compensated,
-            alpha=args.alpha,
-            noise=args.noise,
-            sigma=_sigma_arg(args.sigma),
-            folds=args.folds,
-            outliers="keep" if args.keep_outliers else "set_aside",
-        )
+        with warnings.catch_warnings():  # a table that is not physical: refused below
+            warnings.filterwarnings("ignore", "the fitted table is not physical", RuntimeWarning)
+            diag = diagnose(
+                table,
+                data,
+                base=base,
+                library=library,
+                compensated=args.compensated,
+                alpha=args.alpha,
+                noise=args.noise,
+                sigma=_sigma_arg(args.sigma),
+                folds=args.folds,
+                outliers="keep" if args.keep_outliers else "set_aside",
+            )
         check_physical(diag.final)  # before anything is written
     except ValueError as e:
         raise UsageError(f"{source}: {e}") from None

@@ -141,3 +141,15 @@ def test_the_api_refuses_the_same_repeats():
         )
     with pytest.raises(ValueError, match="effect 'backlash' is given twice"):
         diagnose(table, data, base=("backlash", "backlash"))
+
+
+def test_one_name_given_as_a_string_is_that_name():
+    """`free="zero_lengths"` is the one block, not its letters (which a repeat check would
+    refuse as "'e' is given twice", and `setup` as unknown names)."""
+    from jaxtable._calibration.fit import setup
+
+    table = jt.reference_table()
+    data = jt.load_measurements(jt.__path__[0] + "/data/example_measurements.csv")
+    one = setup(table, data, "zero_lengths", compensated=False)
+    assert one.layout.free == ("zero_lengths",)
+    assert one.names == setup(table, data, ("zero_lengths",), compensated=False).names

@@ -825,3 +825,13 @@ def test_a_fit_that_leaves_no_physical_table_is_refused_before_anything_is_writt
     err = capsys.readouterr().err
     assert "the fitted table is not physical (leg 2: home length" in err, err
     assert "fit fewer parameters" in err and not out.exists()
+    # the API returns the fit for inspection, saying why its table cannot be saved
+    nominal, measured = jt.reference_table(), jt.load_measurements(data)
+    with pytest.warns(RuntimeWarning, match=r"not physical \(leg 2: home length.*cannot be saved"):
+        cal = jt.calibrate(nominal, measured, compensated=True)
+    assert not cal.converged and cal.unidentifiable
+    with pytest.raises(jt.TableFileError, match="leg 2: home length"):
+        jt.save_table(cal.table, tmp_path / "t.toml")
+    with warnings.catch_warnings():  # fewer parameters: a physical table, no warning
+        warnings.simplefilter("error", RuntimeWarning)
+        jt.calibrate(nominal, measured, "zero_lengths", compensated=True)

@@ -15,6 +15,7 @@ joints are fitted modulo rigid motions and the frame/target carry the rest.
 """
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -788,7 +789,7 @@ def setup(
     """Prepare `data` for fitting the `free` parameters of `nominal` + `effects` (see
     `calibrate`). Every block in `free` gets a θ entry (zero = the start value). `sigma`:
     {column: σ (mm / rad)} stated by the user (overrides the file's σ columns)."""
-    free = tuple(free)
+    free = params.as_names(free)
     require_measured(data)
     check_units(data)
     check_alignment(data, nominal)
@@ -1043,6 +1044,10 @@ def calibrate(
     "thermal.alpha[all]") of the model `nominal` + `effects` (default: its hardware
     effects) to `data`.
 
+    A fit whose table is not physical (the fit moved directions the data barely determine
+    until a home length left the stroke: `not_physical`) is returned with a RuntimeWarning
+    saying why; the command line refuses it.
+
     Commanded lengths come from the data, or (absent) from the nominal inverse kinematics,
     compensated for the spiral term when `compensated` (which must then be stated when the
     table has a lead: `commanded_lengths`). With `estimate_frame`, the instrument
@@ -1057,7 +1062,7 @@ def calibrate(
     found by data snooping with a robust scale, set aside as not measured, and the model
     refitted; `Calibration.set_aside` names them; see `outliers`) or "keep".
     """
-    return fit_screened(
+    cal = fit_screened(
         nominal,
         data,
         free,
@@ -1073,25 +1078,49 @@ def calibrate(
         method=method,
         outliers=outliers,
     )[1]
+    warn_not_physical(cal)
+    return cal
 
 
-def check_physical(cal: "Calibration") -> None:
-    """Raise KinematicsError where a fit left a table that is not a hexapod the table file
-    accepts (home lengths outside the stroke, ...): the fit moved directions the data
-    barely determine, typically too many free parameters for the columns and stops
-    measured. Said before anything is written, with what to do about it."""
+def not_physical(cal: "Calibration") -> str | None:
+    """Why a fit left a table that is not a hexapod the table file accepts (home lengths
+    outside the stroke, ...), with what to do about it; None for a physical table. Such a
+    fit moved directions the data barely determine: typically too many free parameters
+    for the columns and stops measured."""
     try:
         check_table(cal.table)
     except TableFileError as e:
         problems = str(e).split("\n", 1)[-1].strip().replace("\n  ", "; ")
-        raise KinematicsError(
+        return (
             f"the fitted table is not physical ({problems}): the fit "
             + ("did not converge" if not cal.converged else "converged")
             + f" in {cal.steps} steps and moved directions these data barely determine "
             f"({cal.n_obs} readings for {len(cal.value)} parameters, "
             f"{len(cal.unidentifiable)} combination(s) undetermined); fit fewer parameters "
             "(e.g. --free zero_lengths), or measure more columns or stops"
-        ) from None
+        )
+    return None
+
+
+def check_physical(cal: "Calibration") -> None:
+    """Raise KinematicsError where the fitted table is not physical (`not_physical`): the
+    command line's rule, before anything is written."""
+    why = not_physical(cal)
+    if why is not None:
+        raise KinematicsError(why)
+
+
+def warn_not_physical(cal: "Calibration") -> None:
+    """The API's rule: a fit whose table is not physical is returned for inspection (its
+    `unidentifiable` directions, `converged`), with a RuntimeWarning saying why; saving
+    its table is refused (`TableFileError`)."""
+    why = not_physical(cal)
+    if why is not None:
+        warnings.warn(
+            why + "; the fit is returned for inspection, its table cannot be saved",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_aside", **kw):
@@ -1100,7 +1129,8 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
     `setup`'s keywords (effects, compensated, estimate_frame, sigma) and `fit`'s."""
     if outliers not in OUTLIERS:
         raise ValueError(f"outliers must be one of {OUTLIERS}; got {outliers!r}")
-    params.check_distinct(tuple(free))
+    free = params.as_names(free)
+    params.check_distinct(free)
     setup_kw = {
         k: kw.pop(k) for k in ("effects", "compensated", "estimate_frame", "sigma") if k in kw
     }

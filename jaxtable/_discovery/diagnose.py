@@ -49,7 +49,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _params as params
-from .._calibration.fit import OUTLIERS, Calibration, Setup, fit, residual_jit, setup
+from .._calibration.fit import (
+    OUTLIERS,
+    Calibration,
+    Setup,
+    fit,
+    residual_jit,
+    setup,
+    warn_not_physical,
+)
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements, require_measured
 from .._calibration.outliers import GrossError, without
@@ -592,8 +600,9 @@ def diagnose(
             data = without(data, found)
         diag.set_aside = sorted(set_aside, key=lambda g: -abs(g.z))
         return diag
-    library = list(EFFECTS) if library is None else list(library)
-    params.check_distinct(tuple(base), "effect")
+    base = params.as_names(base)
+    library = list(EFFECTS) if library is None else list(params.as_names(library))
+    params.check_distinct(base, "effect")
     params.check_distinct(tuple(library), "effect")
     for name in list(base) + library:
         if name not in EFFECTS:
@@ -913,6 +922,7 @@ def diagnose(
             f"{100 * residual_model.gain:+.1f} %; "
             f"strongest: {'; '.join(residual_model.hints()[:3])}"
         )
+    warn_not_physical(final)
     return Diagnosis(
         selected=[params.form_effect(m) for m in _forms_of(model, base)],
         selected_forms=_forms_of(model, base),
