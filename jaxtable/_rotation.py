@@ -48,6 +48,41 @@ def rotation_matrix(angles: Float[ArrayLike, "3"]) -> Float[ArrayLike, "3 3"]:
     return jnp.array(rotation_entries(angles))
 
 
+def euler_matrices(angles: np.ndarray, order: str = "zyx", signs=(1, 1, 1)) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) of attitudes `angles` (N, 3) = (roll, pitch, yaw), rad,
+    composed in another convention: the product of the axis rotations in `order` from left
+    to right ("zyx": Rz(yaw) Ry(pitch) Rx(roll), `rotation_matrix`'s; "xyz": Rx(roll)
+    Ry(pitch) Rz(yaw)), each angle times its sign in `signs` (roll, pitch, yaw: −1 for an
+    angle measured in the other sense). numpy in, numpy out: for reading other
+    instruments' files, never for kinematics."""
+    a = np.asarray(angles, float) * np.asarray(signs, float)
+    c, s = np.cos(a), np.sin(a)
+    one, zero = np.ones(len(a)), np.zeros(len(a))
+
+    def axis(k):  # the rotation about axis k (x, y, z) by angle k, (N, 3, 3)
+        i, j = [(1, 2), (2, 0), (0, 1)][k]
+        m = np.zeros((len(a), 3, 3))
+        m[:, k, k] = one
+        m[:, i, i] = m[:, j, j] = c[:, k]
+        m[:, i, j], m[:, j, i] = -s[:, k], s[:, k]
+        return m + zero[:, None, None]
+
+    out = np.broadcast_to(np.eye(3), (len(a), 3, 3))
+    for letter in order:  # three factors, not a loop over attitudes
+        out = out @ axis("xyz".index(letter))
+    return out
+
+
+def best_rotation(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, S): the rotation R (3, 3) minimising Σ |R p_k − q_k|² over rows of P, Q (K, 3)
+    (Kabsch: from the SVD of Pᵀ Q, its sign fixed so that det R = +1), and the singular
+    values S (3,) of Pᵀ Q (S[1] ≈ 0: the rows lie on a line and R is not determined about
+    it). numpy in, numpy out."""
+    U, S, Vt = np.linalg.svd(np.asarray(P, float).T @ np.asarray(Q, float))
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T, S
+
+
 def paper_rotation_matrix(angles: Float[ArrayLike, "3"]) -> Float[ArrayLike, "3 3"]:
     """The paper's eq. (2) exactly as printed, typos included. For comparison only.
 

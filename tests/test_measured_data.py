@@ -267,6 +267,89 @@ def test_measured_columns_in_other_units_are_refused_by_how_far_they_move(
             )
 
 
+def _in_convention(data, name):
+    """`data` with its measured angles rewritten as an instrument with another attitude
+    convention would write them (scipy's rotations, independent of jaxtable's)."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_euler("ZYX", data.measured[:, [5, 4, 3]])  # the file's: yaw, pitch, roll
+    zyx = R.as_euler("ZYX")[:, ::-1]  # roll, pitch, yaw
+    ways = {
+        "XYZ": lambda: R.as_euler("XYZ"),
+        "YXZ": lambda: R.as_euler("YXZ")[:, [1, 0, 2]],
+        "ZXY": lambda: R.as_euler("ZXY")[:, [1, 2, 0]],
+        "inverse": lambda: R.inv().as_euler("ZYX")[:, ::-1],
+        "roll-": lambda: zyx * [-1, 1, 1],
+        "pitch-": lambda: zyx * [1, -1, 1],
+        "yaw-": lambda: zyx * [1, 1, -1],
+        "roll- pitch-": lambda: zyx * [-1, -1, 1],
+        "all-": lambda: -zyx,
+    }
+    measured = data.measured.copy()
+    measured[:, 3:] = ways[name]()
+    return dataclasses.replace(data, measured=measured)
+
+
+def test_angles_in_another_attitude_convention_are_refused_naming_it(table, sessions, tmp_path):
+    """An instrument that writes another rotation order, an angle in the other sense or the
+    inverse attitude: its turns between consecutive stops have the right angles (units pass)
+    but no instrument frame turns the commanded turns into them; the convention they follow
+    is named, the reversed angles told apart by the frame the positions give (a yaw in the
+    other sense was fitted until the table was not physical). The file's own convention
+    passes whatever the instrument frame (turned 180° about z, 90° about y: the Euler
+    angles' gimbal lock), the target's orientation and the session, and where attitudes are
+    a fraction of a degree (the orders agree to arc-seconds) an order is not judged."""
+    from jaxtable._calibration.measurements import check_angle_convention
+
+    true, a, b, cal = sessions
+    both = jt.Measurements(*(np.concatenate([x, y]) if x is not None else None
+                             for x, y in zip(dataclasses.astuple(a)[:7],
+                                             dataclasses.astuple(b)[:7])))  # fmt: skip
+    check_angle_convention(both)
+    # sessions too short to fit their frames (two stops each): nothing to judge
+    check_angle_convention(dataclasses.replace(both, session=np.arange(len(both)) // 2))
+    frames = ((0, 0, 0, 0, 0, np.pi), (10, 0, 0, 0, np.pi / 2, 0), (0, 0, 0, 2.0, -1.0, 0.6))
+    turned = (300.0, -200.0, 80.0, np.pi / 2, 0.3, np.pi / 4)
+    for seed, frame in enumerate(frames):
+        check_angle_convention(jt.simulate(table, true, jt.plan_random(40, seed), jt.tracker6(),
+                                           frame=frame, target=turned, seed=seed))  # fmt: skip
+    zyx = r"Rz\(yaw\)·Ry\(pitch\)·Rx\(roll\)"
+    named = {
+        "XYZ": r"Rx\(roll\)·Ry\(pitch\)·Rz\(yaw\) \(",
+        "YXZ": r"Ry\(pitch\)·Rx\(roll\)·Rz\(yaw\) \(",
+        "ZXY": r"Rz\(yaw\)·Rx\(roll\)·Ry\(pitch\) \(",
+        "inverse": r"Rx\(roll\)·Ry\(pitch\)·Rz\(yaw\) with roll and pitch and yaw in the "
+        r"other sense .* the inverse",
+        "roll-": r"Rz\(yaw\)·Ry\(pitch\)·Rx\(roll\) with roll in the other sense \(",
+        "pitch-": r"Rz\(yaw\)·Ry\(pitch\)·Rx\(roll\) with pitch in the other sense \(",
+        "yaw-": r"Rz\(yaw\)·Ry\(pitch\)·Rx\(roll\) with yaw in the other sense \(",
+        "roll- pitch-": zyx + r" with roll and pitch in the other sense \(",
+        "all-": zyx + r" with roll and pitch and yaw in the other sense \(",
+    }
+    for name, words in named.items():
+        with pytest.raises(jt.DataFileError, match="follow the commands as R = " + words):
+            check_angle_convention(_in_convention(both, name))
+    # an instrument that reads only angles: which odd number of them is reversed is open
+    angles_only = _in_convention(both, "pitch-")
+    angles_only.measured[:, :3] = np.nan
+    with pytest.raises(jt.DataFileError, match="one angle, or all three, in the other sense"):
+        check_angle_convention(angles_only)
+    # attitudes within ±0.5°: the orders agree to arc-seconds, the senses still differ
+    small = jt.Workspace(combined=(20, 20, 20, 0.5, 0.5, 0.5))
+    near = jt.simulate(table, true, jt.plan_random(40, 7, small), jt.tracker6(), seed=7)
+    check_angle_convention(_in_convention(near, "XYZ"))
+    with pytest.raises(jt.DataFileError, match="with yaw in the other sense"):
+        check_angle_convention(_in_convention(near, "yaw-"))
+    _refused_by_every_verb(
+        table,
+        jt.fitted_model(cal, table, a.sessions),
+        _in_convention(a, "yaw-"),
+        "follow the commands as R = .* with yaw in the other sense",
+        tmp_path,
+        "diagnose",
+    )
+
+
 def _refused_by_every_verb(table, model, bad, pattern, tmp_path, verb):
     """calibrate, diagnose and validate (with the fitted `model`) raise DataFileError matching
     `pattern` on `bad` before they fit; the command line's `verb` exits with 2 and writes

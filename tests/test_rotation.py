@@ -137,3 +137,30 @@ def test_euler_angles_of_a_host_matrix_in_numpy():
     assert isinstance(host, np.ndarray)
     np.testing.assert_allclose(host, a, rtol=0, atol=1e-14)
     np.testing.assert_allclose(np.asarray(euler_from_matrix(jnp.asarray(R))), host, atol=1e-15)
+
+
+def test_other_conventions_and_the_best_rotation_against_scipy():
+    """`euler_matrices` in every order and sense equals scipy's intrinsic rotations of the
+    same angles; `best_rotation` recovers a rotation from noisy rotated vectors and keeps
+    det = +1 where the vectors are reflected."""
+    from scipy.spatial.transform import Rotation
+
+    from jaxtable._rotation import best_rotation, euler_matrices
+
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-1.2, 1.2, (20, 3))  # roll, pitch, yaw
+    np.testing.assert_allclose(
+        euler_matrices(a), [Rz(y) @ Ry(p) @ Rx(r) for r, p, y in a], atol=1e-15
+    )
+    for order in ("zyx", "zxy", "yxz", "yzx", "xzy", "xyz"):
+        signs = rng.choice([-1, 1], 3)
+        angles = [a[:, "xyz".index(k)] * signs["xyz".index(k)] for k in order]
+        want = Rotation.from_euler(order.upper(), np.stack(angles, 1)).as_matrix()
+        np.testing.assert_allclose(euler_matrices(a, order, signs), want, atol=1e-15)
+    R = Rotation.random(random_state=4).as_matrix()
+    P = rng.normal(size=(30, 3))
+    Q = P @ R.T + 1e-6 * rng.normal(size=(30, 3))
+    found, S = best_rotation(P, Q)
+    assert np.abs(found - R).max() < 1e-6 and S[2] > 0
+    mirrored, _ = best_rotation(P, Q * [1, 1, -1])
+    assert np.isclose(np.linalg.det(mirrored), 1.0)

@@ -34,13 +34,14 @@ from .._errors import POSE_COLUMNS, KinematicsError, TableFileError
 from .._forward import RESULTS, ForwardOptions, forward_one
 from .._jit import jit
 from .._kinematics import in_stroke
-from .._rotation import euler_from_matrix, wrap_reading_difference
+from .._rotation import best_rotation, euler_from_matrix, wrap_reading_difference
 from .._table import Table, check_table, replace
 from .._threads import one_blas_thread
 from .instruments import observe
 from .measurements import (
     Measurements,
     check_alignment,
+    check_angle_convention,
     check_commanded,
     check_units,
     require_measured,
@@ -368,12 +369,9 @@ def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_n
 def _kabsch(P, Q):
     """Rotation R and translation t minimising |R P + t − Q| over rows (P, Q (N, 3))."""
     pc, qc = P.mean(0), Q.mean(0)
-    H = (P - pc).T @ (Q - qc)
-    U, S, Vt = np.linalg.svd(H)
+    R, S = best_rotation(P - pc, Q - qc)
     if S[1] < 1e-9 * max(S[0], 1e-300):  # collinear points: no rotation information
         return np.eye(3), qc - pc
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1, 1, d]) @ U.T
     return R, qc - R @ pc
 
 
@@ -792,6 +790,7 @@ def setup(
     free = params.as_names(free)
     require_measured(data)
     check_units(data)
+    check_angle_convention(data)
     check_alignment(data, nominal)
     mask = np.isfinite(data.measured)
     col_mask = mask.any(0)

@@ -22,7 +22,13 @@ from .._errors import POSE_COLUMNS
 from .._io import read_delimited
 from .._jit import jit
 from .._params import pose_from_file, pose_to_file
-from .._rotation import rotation_log, rotation_matrix
+from .._rotation import (
+    ARCSEC_PER_RAD,
+    best_rotation,
+    euler_matrices,
+    rotation_log,
+    rotation_matrix,
+)
 
 CMD = tuple(f"cmd_{c}" for c in POSE_COLUMNS)
 CMD_L = tuple(f"cmd_l{i}" for i in range(1, 7))
@@ -309,6 +315,149 @@ def check_units(data: Measurements) -> None:
                 f"commanded ones (median over {int(use.sum())} moves between consecutive "
                 f"stops): the file's unit is {unit}; are some in {suspects}?"
             )
+
+
+# rotation orders `check_angle_convention` tries (the axis rotations' product, left to
+# right; the file's first) and senses (roll, pitch, yaw: −1 reversed)
+ORDERS = ("zyx", "zxy", "yxz", "yzx", "xzy", "xyz")
+SENSES = tuple((a, b, c) for a in (1, -1) for b in (1, -1) for c in (1, -1))  # (1, 1, 1) first
+
+
+def _convention_words(order: str, signs, undecided: bool = False) -> str:
+    """ "Rz(yaw)·Ry(pitch)·Rx(roll) with roll in the other sense"; `undecided`: which of an
+    odd number of angles is reversed is not known."""
+    names = {"x": "roll", "y": "pitch", "z": "yaw"}
+    product = "·".join(f"R{a}({names[a]})" for a in order)
+    flipped = [names[a] for a, sg in zip("xyz", signs) if sg < 0]
+    if not flipped:
+        return product
+    if undecided:
+        return product + " with one angle, or all three, in the other sense"
+    return product + f" with {' and '.join(flipped)} in the other sense"
+
+
+def _turn_frames(cmd, meas, session, ok):
+    """Per session, the rotation F (`best_rotation`) that turns the commanded turn vectors
+    `cmd` (K, 3) into the measured ones `meas` (K, 3) over the turns `ok` (K,) of that
+    session (`session` (K,) index): ({session: F}, misfit (K,) rad, NaN outside `ok`)."""
+    frames, misfit = {}, np.full(len(cmd), np.nan)
+    for k in np.unique(session[ok]):  # sessions, not stops
+        rows = ok & (session == k)
+        if rows.sum() < 3:
+            continue
+        F, _ = best_rotation(cmd[rows], meas[rows])
+        frames[int(k)] = F
+        misfit[rows] = np.linalg.norm(meas[rows] - cmd[rows] @ F.T, axis=1)
+    return frames, misfit
+
+
+def _position_frames(data: Measurements) -> dict:
+    """Per session with ≥ 10 rows measuring x, y, z: the rotation (`best_rotation`) from
+    the commanded positions to the measured ones about their centroids, where they span a
+    plane at least (the instrument frame's rotation, up to what a target off the platform's
+    centre adds)."""
+    out = {}
+    idx = data.session_index
+    for k in range(len(data.sessions)):  # sessions, not stops
+        rows = (idx == k) & np.isfinite(data.measured[:, :3]).all(1)
+        if rows.sum() < 10:
+            continue
+        P, Q = data.cmd_pose[rows, :3], data.measured[rows, :3]
+        R, S = best_rotation(P - P.mean(0), Q - Q.mean(0))
+        if S[1] > 1e-3 * S[0]:
+            out[k] = R
+    return out
+
+
+def _angle_between(A, B) -> float:
+    """Angle (deg) of the rotation A Bᵀ."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(A @ B.T) - 1) / 2, -1.0, 1.0))))
+
+
+def check_angle_convention(data: Measurements) -> None:
+    """Refuse data whose measured angles follow the commands in another attitude convention
+    than the file's (R = Rz(yaw) Ry(pitch) Rx(roll), each angle right-handed): an
+    instrument that writes another rotation order, an angle measured in the other sense,
+    or the inverse attitude. Such angles pass `check_units` (a turn's angle hardly
+    changes), and a fit then takes the disagreement for noise ("the stated σ is too small")
+    or moves the geometry until the table is not physical.
+
+    Between consecutive stops of a session with all three angles measured, the turn
+    R_next R_prevᵀ as a rotation vector: the session's instrument frame F turns the
+    commanded turn's vector into the measured one's, and the target's orientation on the
+    platform drops out. For each of the six rotation orders with each angle in either
+    sense, F is fitted per session to the turns over 0.2° (`best_rotation`), and the median
+    misfit taken. Reversing two angles is turning F by 180° (about the third angle's axis),
+    so the turns alone cannot tell those senses apart; where the session's positions are
+    measured, the convention whose F is closest to the positions' frame (commanded to
+    measured positions) is named.
+
+    Refused when at least 10 turns say another convention fits 3× better than the file's
+    and the file's misfits by more than 60″ (a table's geometric errors and the effects give
+    a few arc-minutes, and no other convention fits them better; at attitudes of a degree
+    or less the orders agree to arc-seconds, so only the senses are judged), or when the
+    file's convention fits but its F is more than 90° from the positions' frame (two angles
+    reversed). Raises DataFileError naming the convention the angles follow."""
+    m, c = data.measured[:, 3:], data.cmd_pose[:, 3:]
+    idx = data.session_index
+    session = idx[1:]
+    ok = (idx[1:] == idx[:-1]) & np.isfinite(m[1:]).all(1) & np.isfinite(m[:-1]).all(1)
+    if ok.sum() < 10:
+        return
+    m = np.where(np.isfinite(m), m, 0.0)
+    conventions = [(o, s) for o in ORDERS for s in SENSES]
+    R = np.stack([euler_matrices(c)] + [euler_matrices(m, o, s) for o, s in conventions])
+    turns = R[:, 1:] @ np.swapaxes(R[:, :-1], -1, -2)  # (1 + 48, N − 1, 3, 3)
+    w = np.asarray(jax.vmap(rotation_log)(jnp.asarray(turns.reshape(-1, 3, 3))))
+    w = w.reshape(turns.shape[:2] + (3,))
+    ok &= np.linalg.norm(w[0], axis=1) > np.deg2rad(0.2)
+    if ok.sum() < 10:
+        return
+    fits = [_turn_frames(w[0], meas, session, ok) for meas in w[1:]]  # conventions
+    ok &= np.isfinite(fits[0][1])  # turns of sessions with 3 or more
+    if ok.sum() < 10:
+        return
+    misfit = np.array([np.nanmedian(f[1]) for f in fits]) * ARCSEC_PER_RAD
+    positions = _position_frames(data)
+
+    def off(k):  # largest angle (deg) between convention k's frames and the positions'
+        frames = fits[k][0]
+        return max(
+            (_angle_between(frames[s], positions[s]) for s in frames if s in positions),
+            default=0.0,
+        )
+
+    tied = np.flatnonzero(misfit <= 1.5 * misfit.min())
+    best = int(min(tied, key=lambda k: (off(k), sum(sg < 0 for sg in conventions[k][1]))))
+    if misfit[0] > max(3.0 * misfit[best], 60.0) or (best != 0 and off(0) > 90.0):
+        order, signs = conventions[best]
+        which = (
+            f"median misfit {misfit[best]:.0f}″ over {int(ok.sum())} turns between "
+            f"consecutive stops"
+            + (f", its frame {off(best):.0f}° from the positions'" if positions else "")
+        )
+        file_fit = f"{misfit[0]:.0f}″" + (
+            f", {off(0):.0f}° from the positions'" if positions else ""
+        )
+        undecided = not positions and min(signs) < 0
+        if order == "xyz" and (undecided or max(signs) < 0):  # R⁻¹ = Rx(−φ) Ry(−θ) Rz(−ψ)
+            which += (
+                "; reversing all three, that is the inverse: the base's attitude in the "
+                "platform's frame"
+            )
+        raise DataFileError(
+            f"the measured angles (roll, pitch, yaw) follow the commands as "
+            f"R = {_convention_words(order, signs, undecided)} ({which}), not as the file's "
+            f"R = Rz(yaw)·Ry(pitch)·Rx(roll) ({file_fit}): convert the instrument's angles "
+            "to the file's convention (DESIGN: yaw, then pitch, then roll, each "
+            "right-handed)"
+            + (
+                "; without measured positions the angles cannot say which (reversing two "
+                "more fits them as well)"
+                if undecided
+                else ""
+            )
+        )
 
 
 SHIFTS = (1, -1, 2, -2, 3, -3)  # row shifts `check_alignment` tries

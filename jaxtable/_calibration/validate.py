@@ -42,6 +42,7 @@ from .instruments import readings
 from .measurements import (
     Measurements,
     check_alignment,
+    check_angle_convention,
     check_commanded,
     check_units,
     require_measured,
@@ -157,6 +158,7 @@ def validate_model(
         raise ValueError(f"--register must be a positive number of rows; got {register}")
     require_measured(data)
     check_units(data)
+    check_angle_convention(data)
     table = model.table
     check_alignment(data, table)
     check_commanded(data, table)
