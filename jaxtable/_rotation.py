@@ -148,17 +148,23 @@ def euler_from_matrix(R: Float[ArrayLike, "3 3"]) -> Float[ArrayLike, "3"]:
     )
 
 
-def rotation_log(R: Float[ArrayLike, "3 3"]) -> Float[ArrayLike, "3"]:
+def rotation_log(R: Float[ArrayLike, "*batch 3 3"]) -> Float[ArrayLike, "*batch 3"]:
     """Rotation vector ω (rad, shape (3,)) with R = exp([ω]×): the SO(3) log map. The angle
     is atan2 of the skew and symmetric parts, so it is accurate at every angle below π, and
-    the small-angle branch keeps the gradient finite at the identity."""
-    w = 0.5 * jnp.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    sin = jnp.sqrt(jnp.sum(w * w))
-    cos = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    the small-angle branch keeps the gradient finite at the identity. Leading axes batch
+    (R (..., 3, 3) -> ω (..., 3)); numpy in, numpy out (for checks on files, which would
+    otherwise compile a program for every batch size)."""
+    xp = np if isinstance(R, np.ndarray) else jnp
+    w = 0.5 * xp.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        axis=-1,
+    )
+    sin = xp.sqrt(xp.sum(w * w, axis=-1))
+    cos = 0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0)
     small = sin < 1e-12
-    safe = jnp.where(small, 1.0, sin)
-    scale = jnp.where(small, 1.0 + sin**2 / 6, jnp.arctan2(sin, cos) / safe)
-    return w * scale
+    safe = xp.where(small, 1.0, sin)
+    scale = xp.where(small, 1.0 + sin**2 / 6, xp.arctan2(sin, cos) / safe)
+    return w * scale[..., None]
 
 
 def pose_error(

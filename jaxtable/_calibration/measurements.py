@@ -14,20 +14,16 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .._errors import POSE_COLUMNS
 from .._io import read_delimited
-from .._jit import jit
 from .._params import pose_from_file, pose_to_file
 from .._rotation import (
     ARCSEC_PER_RAD,
     best_rotation,
     euler_matrices,
     rotation_log,
-    rotation_matrix,
 )
 
 CMD = tuple(f"cmd_{c}" for c in POSE_COLUMNS)
@@ -239,15 +235,11 @@ def load_measurements(path) -> Measurements:
     )
 
 
-@jit
 def _turn_angles(a, b):
-    """Rotation angle (rad) between attitudes a and b (N, 3) (roll, pitch, yaw, rad)."""
-
-    def one(x, y):
-        R = rotation_matrix(x).T @ rotation_matrix(y)
-        return jnp.linalg.norm(rotation_log(R))
-
-    return jax.vmap(one)(a, b)
+    """Rotation angle (rad) between attitudes a and b (N, 3) (roll, pitch, yaw, rad);
+    numpy, no compilation for each number of stops."""
+    turn = np.swapaxes(euler_matrices(a), -1, -2) @ euler_matrices(b)
+    return np.linalg.norm(rotation_log(turn), axis=-1)
 
 
 def _moves(data: Measurements) -> dict:
@@ -263,8 +255,8 @@ def _moves(data: Measurements) -> dict:
         ok = same & np.isfinite(m[1:, sl]).all(1) & np.isfinite(m[:-1, sl]).all(1)
         if kind == "angles":
             a, b = np.where(ok[:, None], m[:-1, sl], 0.0), np.where(ok[:, None], m[1:, sl], 0.0)
-            d_meas = np.asarray(_turn_angles(a, b))
-            d_cmd = np.asarray(_turn_angles(c[:-1, sl], c[1:, sl]))
+            d_meas = _turn_angles(a, b)
+            d_cmd = _turn_angles(c[:-1, sl], c[1:, sl])
         else:
             d_meas = np.linalg.norm(m[1:, sl] - m[:-1, sl], axis=1)
             d_cmd = np.linalg.norm(c[1:, sl] - c[:-1, sl], axis=1)
@@ -408,8 +400,7 @@ def check_angle_convention(data: Measurements) -> None:
     conventions = [(o, s) for o in ORDERS for s in SENSES]
     R = np.stack([euler_matrices(c)] + [euler_matrices(m, o, s) for o, s in conventions])
     turns = R[:, 1:] @ np.swapaxes(R[:, :-1], -1, -2)  # (1 + 48, N − 1, 3, 3)
-    w = np.asarray(jax.vmap(rotation_log)(jnp.asarray(turns.reshape(-1, 3, 3))))
-    w = w.reshape(turns.shape[:2] + (3,))
+    w = rotation_log(turns)  # (1 + 48, N − 1, 3)
     ok &= np.linalg.norm(w[0], axis=1) > np.deg2rad(0.2)
     if ok.sum() < 10:
         return
