@@ -397,18 +397,18 @@ def check_angle_convention(data: Measurements) -> None:
     if ok.sum() < 10:
         return
     m = np.where(np.isfinite(m), m, 0.0)
+
+    def turns(angles, order="zyx", signs=(1, 1, 1)):  # (..., N − 1, 3) turn vectors
+        R = euler_matrices(angles, order, signs)
+        return rotation_log(R[1:] @ np.swapaxes(R[:-1], -1, -2))
+
+    cmd = turns(c)
+    ok &= np.linalg.norm(cmd, axis=1) > np.deg2rad(0.2)
     conventions = [(o, s) for o in ORDERS for s in SENSES]
-    R = np.stack([euler_matrices(c)] + [euler_matrices(m, o, s) for o, s in conventions])
-    turns = R[:, 1:] @ np.swapaxes(R[:, :-1], -1, -2)  # (1 + 48, N − 1, 3, 3)
-    w = rotation_log(turns)  # (1 + 48, N − 1, 3)
-    ok &= np.linalg.norm(w[0], axis=1) > np.deg2rad(0.2)
-    if ok.sum() < 10:
-        return
-    fits = [_turn_frames(w[0], meas, session, ok) for meas in w[1:]]  # conventions
+    fits = [_turn_frames(cmd, turns(m), session, ok)]  # the file's convention first
     ok &= np.isfinite(fits[0][1])  # turns of sessions with 3 or more
     if ok.sum() < 10:
         return
-    misfit = np.array([np.nanmedian(f[1]) for f in fits]) * ARCSEC_PER_RAD
     positions = _position_frames(data)
 
     def off(k):  # largest angle (deg) between convention k's frames and the positions'
@@ -418,6 +418,10 @@ def check_angle_convention(data: Measurements) -> None:
             default=0.0,
         )
 
+    if np.nanmedian(fits[0][1]) * ARCSEC_PER_RAD <= 60.0 and off(0) <= 90.0:
+        return  # the file's convention fits: no other can be judged better
+    fits += [_turn_frames(cmd, turns(m, o, s), session, ok) for o, s in conventions[1:]]
+    misfit = np.array([np.nanmedian(f[1]) for f in fits]) * ARCSEC_PER_RAD
     tied = np.flatnonzero(misfit <= 1.5 * misfit.min())
     best = int(min(tied, key=lambda k: (off(k), sum(sg < 0 for sg in conventions[k][1]))))
     if misfit[0] > max(3.0 * misfit[best], 60.0) or (best != 0 and off(0) > 90.0):
