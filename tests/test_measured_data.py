@@ -918,3 +918,17 @@ def test_a_fit_that_leaves_no_physical_table_is_refused_before_anything_is_writt
     with warnings.catch_warnings():  # fewer parameters: a physical table, no warning
         warnings.simplefilter("error", RuntimeWarning)
         jt.calibrate(nominal, measured, "zero_lengths", compensated=True)
+
+
+def test_a_frame_pitched_90_degrees_is_named_as_gimbal_lock_not_as_the_data(sessions):
+    """An instrument whose axes are turned 90° about y from the base's: its frame's roll and
+    yaw are one rotation there, so the fit reports their sum as undetermined. The report
+    says that this is the Euler angles' gimbal lock, not what the instrument or the plan
+    can see; a frame a degree or more away gets no such line."""
+    cal = sessions[3]
+    assert "gimbal lock" not in cal.report()
+    for pitch, named in ((90.0, True), (-89.5, True), (88.5, False)):
+        frame = np.asarray(cal.frame).copy()
+        frame[0, 4] = np.deg2rad(pitch)
+        text = dataclasses.replace(cal, frame=frame).report()
+        assert ("session 1 is pitched" in text and "gimbal lock" in text) == named, text

@@ -555,6 +555,16 @@ class Calibration:
                 lines.append(f"  ... and {len(self.unidentifiable) - 12} more")
         else:
             lines.append("every fitted parameter is identifiable from these data")
+        for k, pitch in enumerate(np.degrees(np.asarray(self.frame)[:, 4])):
+            if abs(abs(pitch) - 90.0) < 1.0:  # the frame's Euler angles at gimbal lock
+                lines.append(
+                    f"the instrument frame of session {k + 1} is pitched {pitch:.2f}°: there "
+                    "its roll and yaw turn about nearly one axis (the Euler angles' gimbal "
+                    "lock), so their sum or difference is poorly determined whatever the "
+                    "data, and the fit may take many steps; the frame as a rotation is "
+                    "determined (define the instrument's axes so that its pitch to the "
+                    "base is far from ±90° to avoid it)"
+                )
         return "\n".join(lines)
 
 
