@@ -184,7 +184,8 @@ def test_spreadsheet_exports_read_as_the_plain_file(tmp_path, sessions):
 
 def test_what_a_reader_cannot_know_is_refused_by_row_and_column(tmp_path, sessions):
     """Decimal commas, an infinite reading (a tracker's overflow is not a value), a byte
-    that is not UTF-8, a blank line between stops: refused, the message naming the row
+    that is not UTF-8, a blank line between stops, a header repeated where two files were
+    joined: refused, the message naming the row
     (1 = the line after the header) and column; a value not measured stays an empty cell."""
     _, a, _, _ = sessions
     plain = tmp_path / "plain.csv"
@@ -205,6 +206,9 @@ def test_what_a_reader_cannot_know_is_refused_by_row_and_column(tmp_path, sessio
         cells[header.index(col)] = value
         return rows[:row] + [sep.join(cells)] + rows[row + 1 :]
 
+    joined = lines + lines  # a second file's rows, its header line included, appended
+    with pytest.raises(jt.DataFileError, match=r"row 7 repeats the header .*`session` column"):
+        jt.load_measurements(write("joined.csv", joined))
     semi = edit(4, "cmd_y", "12,5", sep=";")
     with pytest.raises(jt.DataFileError, match=r"row 4, column 'cmd_y': '12,5' .*decimal comma"):
         jt.load_measurements(write("comma.csv", semi))

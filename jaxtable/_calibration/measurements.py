@@ -162,9 +162,10 @@ def load_measurements(path) -> Measurements:
     the line after the header). Read as `_io.read_delimited` reads (UTF-8 with or without a
     byte-order mark, any line ending, comma or else semicolon or tab separated, blank lines
     at the end ignored). Refuses, naming row and column: a missing commanded value, a
-    non-numeric cell in a known numeric column (with a hint where it is a decimal comma), an
-    infinite value anywhere (a value not measured is an empty cell or NaN), a negative σ, a
-    blank line between rows, a row with a different number of cells; and a file with no
+    non-numeric cell in a known numeric column (with a hint where it is a decimal comma), a
+    row that repeats the header (files joined), an infinite value anywhere (a value not
+    measured is an empty cell or NaN), a negative σ, a blank line between rows, a row with
+    a different number of cells; and a file with no
     measured column or no commanded-pose columns. Nothing is dropped; unknown columns are
     kept."""
     path = Path(path)
@@ -203,6 +204,12 @@ def load_measurements(path) -> Measurements:
     for r, row in enumerate(rows, start=1):
         if not row:
             raise DataFileError(f"{path}: row {r} is a blank line (a stop needs its command)")
+        if [c.strip() for c in row] == header:
+            raise DataFileError(
+                f"{path}: row {r} repeats the header (files joined?): delete that line; if "
+                "the rows after it were recorded anew (the tracker set up again), label "
+                "them with a `session` column"
+            )
         if len(row) != len(header):
             raise DataFileError(
                 f"{path}: row {r} has {len(row)} cells, the header has {len(header)}"
