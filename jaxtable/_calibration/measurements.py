@@ -242,11 +242,13 @@ def load_measurements(path) -> Measurements:
     )
 
 
-def _turn_angles(a, b):
-    """Rotation angle (rad) between attitudes a and b (N, 3) (roll, pitch, yaw, rad);
-    numpy, no compilation for each number of stops."""
-    turn = np.swapaxes(euler_matrices(a), -1, -2) @ euler_matrices(b)
-    return np.linalg.norm(rotation_log(turn), axis=-1)
+def _turns(angles, order: str = "zyx", signs=(1, 1, 1)) -> np.ndarray:
+    """(N − 1, 3) rotation vectors (rad, base frame) of the turns R_next R_prevᵀ between
+    consecutive attitudes `angles` (N, 3) (roll, pitch, yaw, rad; composed as
+    `euler_matrices(angles, order, signs)`); their norms are the turn angles. numpy, no
+    compilation for each number of stops. NaN attitudes give NaN turns."""
+    R = euler_matrices(angles, order, signs)
+    return rotation_log(R[1:] @ np.swapaxes(R[:-1], -1, -2))
 
 
 def _moves(data: Measurements) -> dict:
@@ -261,9 +263,8 @@ def _moves(data: Measurements) -> dict:
     for kind, sl in (("angles", slice(3, 6)), ("positions", slice(0, 3))):
         ok = same & np.isfinite(m[1:, sl]).all(1) & np.isfinite(m[:-1, sl]).all(1)
         if kind == "angles":
-            a, b = np.where(ok[:, None], m[:-1, sl], 0.0), np.where(ok[:, None], m[1:, sl], 0.0)
-            d_meas = _turn_angles(a, b)
-            d_cmd = _turn_angles(c[:-1, sl], c[1:, sl])
+            d_meas = np.linalg.norm(_turns(np.where(np.isfinite(m[:, sl]), m[:, sl], 0.0)), axis=1)
+            d_cmd = np.linalg.norm(_turns(c[:, sl]), axis=1)
         else:
             d_meas = np.linalg.norm(m[1:, sl] - m[:-1, sl], axis=1)
             d_cmd = np.linalg.norm(c[1:, sl] - c[:-1, sl], axis=1)
@@ -370,7 +371,7 @@ def _position_frames(data: Measurements) -> dict:
 
 def _angle_between(A, B) -> float:
     """Angle (deg) of the rotation A Bᵀ."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(A @ B.T) - 1) / 2, -1.0, 1.0))))
+    return float(np.degrees(np.linalg.norm(rotation_log(A @ B.T))))
 
 
 def check_angle_convention(data: Measurements) -> None:
@@ -404,15 +405,10 @@ def check_angle_convention(data: Measurements) -> None:
     if ok.sum() < 10:
         return
     m = np.where(np.isfinite(m), m, 0.0)
-
-    def turns(angles, order="zyx", signs=(1, 1, 1)):  # (..., N − 1, 3) turn vectors
-        R = euler_matrices(angles, order, signs)
-        return rotation_log(R[1:] @ np.swapaxes(R[:-1], -1, -2))
-
-    cmd = turns(c)
+    cmd = _turns(c)
     ok &= np.linalg.norm(cmd, axis=1) > np.deg2rad(0.2)
     conventions = [(o, s) for o in ORDERS for s in SENSES]
-    fits = [_turn_frames(cmd, turns(m), session, ok)]  # the file's convention first
+    fits = [_turn_frames(cmd, _turns(m), session, ok)]  # the file's convention first
     ok &= np.isfinite(fits[0][1])  # turns of sessions with 3 or more
     if ok.sum() < 10:
         return
@@ -427,7 +423,7 @@ def check_angle_convention(data: Measurements) -> None:
 
     if np.nanmedian(fits[0][1]) * ARCSEC_PER_RAD <= 60.0 and off(0) <= 90.0:
         return  # the file's convention fits: no other can be judged better
-    fits += [_turn_frames(cmd, turns(m, o, s), session, ok) for o, s in conventions[1:]]
+    fits += [_turn_frames(cmd, _turns(m, o, s), session, ok) for o, s in conventions[1:]]
     misfit = np.array([np.nanmedian(f[1]) for f in fits]) * ARCSEC_PER_RAD
     tied = np.flatnonzero(misfit <= 1.5 * misfit.min())
     best = int(min(tied, key=lambda k: (off(k), sum(sg < 0 for sg in conventions[k][1]))))

@@ -178,6 +178,13 @@ class Candidate:
         }
 
 
+def _shared_form_of(form: str) -> str | None:
+    """The shared form of a per-leg form that has one (`"thermal"` -> `"thermal[all]"`);
+    None for a shared form or an effect without one."""
+    forms = () if params.is_shared(form) else params.effect_forms(form)
+    return forms[1] if len(forms) > 1 else None
+
+
 def _lighten(steps: list) -> None:
     """Once the last of `steps` is decided: its candidates' fits, and the fits of the steps
     before it, become their `Calibration.light` records (a search scores ~15 candidates a
@@ -712,8 +719,7 @@ def diagnose(
             effect = params.form_effect(name)
             fitted = {f: cal.parameter(f"{effect}.{f}") for f in EFFECTS[effect].fields}
             h = heldout_rms(cal, fold_rows, mask)
-            forms = () if params.is_shared(name) else params.effect_forms(name)
-            if dbic >= -bic_threshold and not (len(forms) > 1 and forms[1] in model):
+            if dbic >= -bic_threshold and _shared_form_of(name) not in model:
                 cal = cal.light()  # neither added nor an upgrade: only its record is kept
             gain = 1.0 - h / heldout_current
             cands.append(Candidate(name, float(dbic), gain, h, cal.chi2, cal.rank, fitted, cal))
@@ -725,14 +731,14 @@ def diagnose(
         by_form = {c.effect: c for c in cands}
         upgradable = []  # per-leg forms of a shared form in the model
         for c in cands:  # per-leg forms: do the data reject equal legs?
-            forms = () if params.is_shared(c.effect) else params.effect_forms(c.effect)
-            if len(forms) < 2:
+            shared = _shared_form_of(c.effect)
+            if shared is None:
                 continue
-            if forms[1] in model:
+            if shared in model:
                 c.equal_legs_p = equal_legs_p(c.fit, current)
                 upgradable.append(c)
-            elif forms[1] in by_form:
-                c.equal_legs_p = equal_legs_p(c.fit, by_form[forms[1]].fit)
+            elif shared in by_form:
+                c.equal_legs_p = equal_legs_p(c.fit, by_form[shared].fit)
         for c in cands:
             log(
                 f"  candidate {c.effect:14s} dBIC = {c.delta_bic:10.1f}  held-out gain "
