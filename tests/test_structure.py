@@ -228,22 +228,28 @@ def test_the_linearised_test_of_an_added_effect_equals_the_test_on_its_refit():
     assert law_q.p_value(law_q.z(a_lin)) >= 0.01 and law1.p_value(law1.z(a_refit)) >= 0.01
 
 
-def test_neighbours_are_the_nearest_in_bounded_chunks():
-    """The k nearest other rows against a full distance matrix sorted by scipy, for a run
-    long enough that the chunks shrink below `chunk` rows (memory bound 2²² numbers), with
-    a subset of rows and duplicated stops (a distance 0 that is not the row itself)."""
+def test_neighbours_are_the_nearest_other_rows():
+    """The k nearest other rows against a full distance matrix sorted by scipy, on a subset
+    of rows, with a stop repeated once (a distance 0 that is not the row itself) and one
+    repeated six times (more rows at distance 0 than k + 1: the row itself must still not
+    be its own neighbour)."""
     from scipy.spatial.distance import cdist
 
     rng = np.random.default_rng(4)
     x = rng.normal(size=(3000, 12))
     x[10] = x[11]  # a stop repeated
+    x[20:26] = x[20]  # six stops at one pose
     rows = np.sort(rng.choice(3000, 2500, replace=False))
-    rows = np.union1d(rows, [10, 11])
+    rows = np.union1d(rows, [10, 11, *range(20, 26)])
     nn = neighbours(x, 3, rows)
+    assert nn.shape == (len(rows), 3)
     d = cdist(x[rows], x[rows])
     np.fill_diagonal(d, np.inf)
     truth = np.sort(d, axis=1)[:, :3]
     np.testing.assert_array_equal(np.sort(np.take_along_axis(d, nn, axis=1), axis=1), truth)
-    assert (1 << 22) // (len(rows) * 12) < 1024  # the bound, not `chunk`, set the chunks
+    assert np.all(nn != np.arange(len(rows))[:, None])  # never the row itself
+    assert np.all([len(set(r)) == 3 for r in nn.tolist()])  # three different rows
     i10 = np.flatnonzero(rows == 10)[0]
     assert rows[nn[i10]].tolist().count(11) == 1 and 10 not in rows[nn[i10]]
+    for i in np.flatnonzero((rows >= 20) & (rows < 26)):
+        assert set(rows[nn[i]]) <= set(range(20, 26)) - {rows[i]}
