@@ -23,6 +23,7 @@ def store(tmp_path, monkeypatch):
     monkeypatch.setattr(_tracecache, "directory", lambda: tmp_path)
     monkeypatch.setattr(_tracecache, "_MEMORY", {})
     monkeypatch.setattr(_tracecache, "_REFUSED", set())
+    monkeypatch.setattr(_tracecache, "_REPEATS", {})
     return tmp_path
 
 
@@ -94,6 +95,47 @@ def test_the_key_separates_what_tracing_depends_on(table, store, monkeypatch):
 
 def _outside(x):
     return jnp.sin(x) * 2.0
+
+
+def test_a_repeated_call_finds_its_program_without_pickling_its_arguments(
+    table, store, monkeypatch
+):
+    """A call with the same objects where an earlier call had objects that are not arrays,
+    and arrays of the same shapes, runs that call's program without pickling its arguments
+    for the key (a fit calls its block program several times a step). Another static
+    field, other numbers that are not arrays (part of the program), another dtype or
+    another jaxtable version make the key again."""
+    pickled = []
+    real = _tracecache._static_bytes
+    monkeypatch.setattr(_tracecache, "_static_bytes", lambda obj: pickled.append(1) or real(obj))
+    lengths = _jit.jit(jt._kinematics.leg_lengths)
+    pose = jnp.array([10.0, 0.0, 5.0, 0.01, 0.0, 0.02])
+    first = lengths(table, pose)
+    assert len(pickled) == 1 and len(_entries(store)) == 1
+    moved = lengths(table, pose + 1.0)  # the same table, other values
+    assert len(pickled) == 1
+    assert not np.allclose(moved, first)
+    np.testing.assert_array_equal(lengths(table, pose), first)
+    renamed = dataclasses.replace(table, name="renamed")  # a static field: another program
+    np.testing.assert_array_equal(lengths(renamed, pose), first)
+    assert len(pickled) == 2 and len(_entries(store)) == 2
+    # a number that is not an array is part of the program: another number in its place
+    # (the same pytree structure) must not find the program of the first
+    eig = _jit.jit(jt._linalg.largest_eigval_small)
+    Q = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    S = jnp.asarray(Q @ np.diag([1.0, 0.95, 0.5]) @ Q.T)
+    assert abs(float(eig(S, 12)) - 1.0) < 1e-12  # a new program: pickled
+    assert abs(float(eig(S, 12)) - 1.0) < 1e-12  # the same objects: a repeat
+    assert len(pickled) == 3 and len(_entries(store)) == 3
+    assert abs(float(eig(S, 1)) - 1.0) > 1e-4  # one squaring: its own program
+    assert len(pickled) == 4 and len(_entries(store)) == 4
+    lengths(table, jnp.zeros(6, jnp.float32))  # another dtype
+    assert len(pickled) == 5 and len(_entries(store)) == 5
+    monkeypatch.setattr(_tracecache, "fingerprint", lambda: "another version")
+    lengths(table, pose)
+    assert len(pickled) == 6 and len(_entries(store)) == 6
+    monkeypatch.setenv(_tracecache.ENV, "0")  # the plain program gives the same numbers
+    np.testing.assert_allclose(lengths(table, pose), first, rtol=0, atol=1e-12)
 
 
 def test_code_from_outside_jaxtable_is_traced_as_before(table, store):
