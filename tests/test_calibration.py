@@ -228,7 +228,7 @@ def test_fit_jacobian_equals_central_differences(table):
     J0 = jac(st.theta0)[0]
     assert np.all(np.linalg.norm(J0, axis=0) > 0)  # every parameter matters
     # D: a step of D_j moves the weighted residual by about one unit
-    D = np.asarray(_scales(J0, jnp.ones(flat.shape)))
+    D = np.asarray(_scales(J0.T @ J0, np.ones(flat.shape)))
     f = np.asarray(flat) + D * np.random.default_rng(0).standard_normal(flat.shape)
     J, r, solved = jac(unravel(jnp.asarray(f)))
     assert J.shape == (24 * 6, flat.size) and solved.shape == (24,) and np.all(solved)
@@ -287,3 +287,36 @@ def test_truncated_step_is_the_truncated_pseudo_inverse():
         -np.linalg.lstsq(C, r, rcond=None)[0],
         rtol=1e-6,
     )
+
+
+def test_fits_of_any_number_of_stops_share_one_compiled_program(table):
+    """Data sets of 23, 64 and 150 stops (part of a block, one block, three blocks with the
+    last padded) fit and validate with one compiled program each for the fit and the
+    residual of their model structure, not one per number of stops; the blocked Jacobian
+    equals the one evaluated as a single block of all the stops, padded rows add nothing,
+    and each fit recovers the planted zero-length errors within 4 σ."""
+    from conftest import compiled_programs
+
+    from jaxtable._calibration.fit import jacobian_in_chunks, setup
+
+    true = perturb_table(table, 31)
+    dl = np.asarray(true.zero_lengths) - np.asarray(table.zero_lengths)
+    with compiled_programs() as compiles:
+        for n in (23, 64, 150):
+            data = simulate(table, true, plan_random(n, 31 + n), point_tracker(), seed=n)
+            cal = calibrate(table, data, ("zero_lengths",))
+            assert cal.converged
+            value, std = cal.parameter("zero_lengths")
+            z = (value - dl) / std
+            assert np.all(np.abs(z) < 4), (n, z)
+            assert set(validate(cal, table, data)) == {"x", "y", "z"}
+    assert compiles.count("jit(_block_jacobian)") <= 1, compiles
+    assert compiles.count("jit(residual)") <= 1, compiles
+    st = setup(table, data, ("zero_lengths",))
+    one = jacobian_in_chunks(st.problem, st.layout, cal.theta, rows=150)
+    blocked = jacobian_in_chunks(st.problem, st.layout, cal.theta)
+    for a, b in zip(one, blocked):
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12)
+    J, r, _ = blocked
+    assert J.shape == (900, len(st.names))
+    np.testing.assert_allclose(r.reshape(-1, 6)[:, 3:], 0.0)  # angles not measured

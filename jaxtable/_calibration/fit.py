@@ -27,7 +27,7 @@ from jax.flatten_util import ravel_pytree
 
 from .. import _params as params
 from .._api import actuator_command
-from .._batch import SMALL_BATCH, _pad_rows, _slice_rows
+from .._batch import _in_pieces, _pad_rows, _pool, _slice_rows, cpu_workers
 from .._context import Context, directions, run_time
 from .._effects import resolve_effects
 from .._errors import POSE_COLUMNS, KinematicsError, TableFileError
@@ -165,6 +165,31 @@ def _rows(problem: Problem):
     )
 
 
+FIT_BLOCK = 64
+"""Stops in each compiled block of a fit's residual and Jacobian (`jacobian_in_chunks`):
+fits of any number of stops share one compiled program per model structure. Measured on
+the 164-parameter Jacobian of a diagnosis: 38 µs a stop in blocks of 64, 41–44 in blocks
+of 96 or 128, 52 in blocks of 32 and 111 in blocks of 16 (a call costs ~1.2 ms however
+small). The last block is padded: a 150-stop fit evaluates 192 stops, a 14-stop fit 64."""
+
+
+def _stop_blocks(problem: Problem, rows: int = FIT_BLOCK) -> list:
+    """`problem` cut into blocks of `rows` stops: [(block problem, stops used)], the last
+    block padded by repeating its last stop with zero weight (so it adds nothing to a sum
+    over rows). The per-stop arrays are sliced in numpy (indexing jax arrays eagerly compiles
+    a gather for every shape)."""
+    n = problem.s.shape[0]
+    per_stop = jax.tree.map(np.asarray, _rows(problem))
+    blocks = []
+    for start in range(0, n, rows):  # blocks of a batch, not a loop over poses
+        k = min(rows, n - start)
+        chunk = list(_pad_rows(_slice_rows(per_stop, start, start + rows), rows))
+        chunk[5] = np.where(np.arange(rows)[:, None] < k, chunk[5], 0.0)  # the weight
+        chunk = jax.tree.map(jnp.asarray, tuple(chunk))
+        blocks.append((eqx.tree_at(_rows, problem, chunk), k))
+    return blocks
+
+
 def _row_residual(model, s, guess, session, ctx, measured, weight):
     """One data row: ((reading − measured) / σ (6,), 0 where not measured; whether the
     forward solve succeeded), for `model` = `build_model(...)`."""
@@ -190,6 +215,15 @@ def residual(theta, args):
 residual_jit = jit(residual)
 
 
+def weighted_residual(problem: Problem, layout: Layout, theta) -> np.ndarray:
+    """(reading − measured) / σ per cell (N, 6) at θ, 0 where not measured: `residual_jit`
+    in blocks of `FIT_BLOCK` stops (one compiled program per model structure, whatever the
+    number of stops)."""
+    blocks = _stop_blocks(problem)
+    parts = _in_blocks(blocks, lambda b: residual_jit(theta, (b, layout)))
+    return np.concatenate([np.asarray(r).reshape(-1, 6)[:n] for r, (_, n) in zip(parts, blocks)])
+
+
 def _residual_and_jacobian(problem, layout, unravel):
     """f ↦ (J (N·6, P), (residual (N·6,), solved (N,))) on the flat parameters: the weighted
     residual and its Jacobian, with whether each row's forward solve succeeded.
@@ -213,114 +247,124 @@ def _residual_and_jacobian(problem, layout, unravel):
 
 
 @jit
-def jacobian(problem: Problem, layout: Layout, theta):
-    """(J (N·6, P), residual (N·6,), solved (N,)) at θ: the weighted residual's Jacobian on
-    the flat parameters (see `_residual_and_jacobian`)."""
-    flat, unravel = ravel_pytree(theta)
-    J, (r, solved) = _residual_and_jacobian(problem, layout, unravel)(flat)
+def _block_jacobian(problem: Problem, layout: Layout, theta0, f):
+    """One block of stops at the flat parameters `f` (P,) (laid out as `theta0`): (J (B·6, P),
+    r (B·6,), solved (B,)) of the weighted residual (`_residual_and_jacobian`)."""
+    _, unravel = ravel_pytree(theta0)
+    J, (r, solved) = _residual_and_jacobian(problem, layout, unravel)(f)
     return J, r, solved
 
 
-def jacobian_in_chunks(problem: Problem, layout: Layout, theta, rows: int = SMALL_BATCH):
-    """`jacobian` (J (N·6, P), residual (N·6,), solved (N,), numpy) evaluated `rows` stops
-    at a time, the last chunk padded by repeating its last stop (`run_batch`'s padding): one
-    compiled program whatever the number of stops. For candidate poses (pose selection, the
-    discrimination plan), whose number changes from call to call (the reachable ones of a
-    random draw); compiling the Jacobian takes seconds, evaluating 256 stops milliseconds.
-    The per-stop arrays are sliced in numpy (indexing jax arrays eagerly compiles a gather
-    for every shape)."""
-    n = problem.s.shape[0]
-    per_stop = jax.tree.map(np.asarray, _rows(problem))
-    parts = []
-    for start in range(0, n, rows):  # chunks of a large batch, not a loop over poses
-        k = min(rows, n - start)
-        chunk = _pad_rows(_slice_rows(per_stop, start, start + rows), rows)
-        J, r, solved = jacobian(eqx.tree_at(_rows, problem, chunk), layout, theta)
-        parts.append((np.asarray(J)[: 6 * k], np.asarray(r)[: 6 * k], np.asarray(solved)[:k]))
-    return tuple(np.concatenate(p) for p in zip(*parts))
+def jacobian_in_chunks(
+    problem: Problem, layout: Layout, theta, rows: int = FIT_BLOCK, *, flat=None, blocks=None
+):
+    """(J (N·6, P), residual (N·6,), solved (N,)) at θ, numpy: the weighted residual's
+    Jacobian on the flat parameters (`_residual_and_jacobian`), evaluated in blocks of
+    `rows` stops with the fit's block program (`_block_jacobian`): one compiled program
+    whatever the number of stops, the same one the fits of this model structure run (a file
+    of a new length fits without compiling; pose selection and the discrimination plan,
+    whose candidate poses change in number from call to call, share it). `flat` (P,): the
+    parameters as a flat vector laid out as `theta` (default θ itself); `blocks`:
+    `_stop_blocks(problem, rows)` when the caller has them (a fit evaluates each step on
+    the same blocks)."""
+    flat = jnp.asarray(ravel_pytree(theta)[0] if flat is None else flat)
+    blocks = _stop_blocks(problem, rows) if blocks is None else blocks
+    out = _in_blocks(blocks, lambda b: _block_jacobian(b, layout, theta, flat))
+    used = [n for _, n in blocks]
+    return tuple(
+        np.concatenate([np.asarray(o[i])[: m * n] for o, n in zip(out, used)])
+        for i, m in ((0, 6), (1, 6), (2, 1))
+    )
 
 
-def _scales(J, mask):
-    """Jacobi scaling D (P,) = mask / column norms of J (1 for a zero column)."""
-    norms = jnp.linalg.norm(J, axis=0)
-    return jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 1.0) * mask
+POOL_BLOCKS = 8
+"""From this many blocks a fit's blocks run from a pool of host threads, one per core
+(`_in_blocks`)."""
+
+
+def _in_blocks(blocks: list, call) -> list:
+    """[call(block) for each block of `_stop_blocks`]; from `POOL_BLOCKS` blocks on, on
+    every core from a pool of host threads (XLA runs programs called from different threads
+    at once; `_batch`). XLA already spreads one block's program over the cores in part:
+    the fit of 10,000 stops (157 blocks) took 1.19 s with the pool and 1.63 s without, that
+    of 150 stops (3 blocks, 164 parameters) 128 ms with it and 101 ms without."""
+    workers = cpu_workers() if len(blocks) >= POOL_BLOCKS and _in_pieces() else 1
+    if workers == 1:
+        return [call(b) for b, _ in blocks]
+    return list(_pool(workers).map(lambda bn: call(bn[0]), blocks))
+
+
+def _scales(G, mask):
+    """Jacobi scaling D (P,) = mask / column norms of J, from the Gram matrix G = JᵀJ (P, P)
+    (1 for a zero column)."""
+    norms = np.sqrt(np.maximum(np.diag(G), 0.0))
+    return np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 1.0) * mask
+
+
+def _gram_step(G, g, rcond):
+    """−A⁺ r from G = AᵀA (P, P) and g = Aᵀr (P,), singular values of A below `rcond` × the
+    largest dropped, by the eigen-decomposition AᵀA = V Λ Vᵀ (σ² = λ): on the (N·6, P)
+    Jacobian of a discovery fit (900 × 164) LAPACK's SVD takes 11 ms, forming AᵀA and `eigh`
+    on it 3.8. The price: rounding is amplified by κ² (κ = σ_max / σ of the weakest kept
+    direction) where an SVD amplifies it by κ, so a step along a direction kept at σ/σ_max =
+    1e-4 is exact to ~1e-8 relative, and near the truncation level to ~1e-4; the next
+    Gauss-Newton step corrects it. The columns of A are scaled to unit norm (`_scales`), so
+    λ_max ≤ P and the truncation level rcond² λ_max (1e-12 λ_max) stays ~100× above the
+    eigenvalues' rounding error (~P ε λ_max)."""
+    lam, V = np.linalg.eigh(G)
+    keep = lam > rcond**2 * lam[-1]
+    return -V @ (np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0) * (V.T @ g))
 
 
 def _truncated_step(A, r, rcond):
-    """−A⁺ r, the least-squares step with singular values of A below `rcond` × the largest
-    dropped, from the eigen-decomposition of the Gram matrix AᵀA = V Λ Vᵀ (σ² = λ): on the
-    (N·6, P) Jacobian of a discovery fit (900 × 164) LAPACK's SVD takes 11 ms, forming AᵀA
-    and `eigh` on it 3.8. The price: rounding is amplified by κ² (κ = σ_max / σ of the
-    weakest kept direction) where an SVD amplifies it by κ, so a step along a direction
-    kept at σ/σ_max = 1e-4 is exact to ~1e-8 relative, and near the truncation level to
-    ~1e-4; the next Gauss-Newton step corrects it. The columns of A are scaled to unit norm
-    (`_scales`), so λ_max ≤ P and the truncation level rcond² λ_max (1e-12 λ_max) stays
-    ~100× above the eigenvalues' rounding error (~P ε λ_max)."""
-    lam, V = jnp.linalg.eigh(A.T @ A)
-    keep = lam > rcond**2 * lam[-1]
-    return -V @ (jnp.where(keep, 1.0 / jnp.where(keep, lam, 1.0), 0.0) * (V.T @ (A.T @ r)))
+    """−A⁺ r for A (M, P), r (M,): `_gram_step` of AᵀA and Aᵀr."""
+    A, r = np.asarray(A), np.asarray(r)
+    return _gram_step(A.T @ A, A.T @ r, rcond)
 
 
-@jit
 def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e-6):
     """Gauss-Newton in Jacobi-scaled variables u (θ = θ0 + D·u, D = `_scales` of the
-    Jacobian at θ0) with truncated least-squares steps (`_truncated_step`): singular values
+    Jacobian at θ0) with truncated least-squares steps (`_gram_step`): singular values
     below `rcond` × the largest (frozen, i.e. masked, and unidentifiable directions) get no
     step, so those parameters stay at their start values instead of drifting.
 
-    One `while_loop` whose body evaluates the residual and its Jacobian once: the start's
-    Jacobian sets D, the last one is the Jacobian at the returned θ, so a fit is one
-    program with one copy of the forward solve (what its tracing and compile time scale
-    with). Stopping rule: optimistix's Cauchy rule for its `GaussNewton`: stop at the
-    evaluated point u_k when max|u_k − u_k−1| / (atol + rtol·|u_k|) < 1 and
-    max|r_k − r_k−1| / (atol + rtol·|r_k|) < 1.
+    Each step evaluates the residual and its Jacobian once, in blocks of `FIT_BLOCK` stops
+    (`jacobian_in_chunks`: one compiled program whatever the number of stops, so a file of
+    a new length fits without compiling); the step is a P × P eigen-decomposition of the
+    Gram matrix, formed in numpy (for 900 × 164 in 0.8 ms, where XLA's CPU product took
+    3.6). The start's Jacobian sets D; the last one is the
+    Jacobian at the returned θ. Stopping rule: optimistix's Cauchy rule for its
+    `GaussNewton`: stop at the evaluated point u_k when max|u_k − u_k−1| / (atol + rtol·|u_k|)
+    < 1 and max|r_k − r_k−1| / (atol + rtol·|r_k|) < 1.
 
-    Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ)."""
+    Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ), numpy
+    arrays and θ as `theta0`'s pytree."""
     flat0, unravel = ravel_pytree(theta0)
-    evaluate = _residual_and_jacobian(problem, layout, unravel)
-    n_res, n_rows, P = problem.measured.size, problem.measured.shape[0], flat0.shape[0]
+    flat0, mask = np.asarray(flat0), np.asarray(mask, float)
+    P = flat0.size
+    blocks = _stop_blocks(problem)
 
-    def cond(c):
-        return ~c["done"] & (c["k"] < max_steps) & jnp.all(jnp.isfinite(c["f"]))
+    def evaluate(f):
+        J, r, solved = jacobian_in_chunks(problem, layout, theta0, flat=f, blocks=blocks)
+        return J, r, solved, J.T @ J, J.T @ r
 
-    def body(c):
-        k, f = c["k"], c["f"]
-        J, (r, solved) = evaluate(f)
-        D = jnp.where(k == 0, _scales(J, mask), c["D"])
-        r0 = jnp.where(k == 0, r, c["r0"])
+    f, f_prev, r_prev = flat0, flat0, None
+    k, done, D, r0 = 0, False, None, None
+    J, r, solved = np.zeros((0, P)), np.zeros(0), np.zeros(0, bool)
+    while not done and k < max_steps and np.all(np.isfinite(f)):
+        J, r, solved, G, g = evaluate(f)
+        if k == 0:
+            D, r0, r_prev = _scales(G, mask), r, r
         on = D > 0
-        u = jnp.where(on, (f - flat0) / jnp.where(on, D, 1.0), 0.0)
-        du = jnp.where(on, (f - c["f_prev"]) / jnp.where(on, D, 1.0), 0.0)
-        small_u = jnp.max(jnp.abs(du) / (atol + rtol * jnp.abs(u))) < 1
-        small_r = jnp.max(jnp.abs(r - c["r"]) / (atol + rtol * jnp.abs(r))) < 1
-        done = (k > 0) & small_u & small_r
-        step = _truncated_step(J * D, r, rcond)
-        return dict(
-            k=k + 1,
-            f=jnp.where(done, f, f + D * step),
-            f_prev=f,
-            r=r,
-            r0=r0,
-            J=J,
-            D=D,
-            solved=solved,
-            done=done,
-        )
-
-    init = dict(
-        k=jnp.array(0),
-        f=flat0,
-        f_prev=flat0,
-        r=jnp.zeros(n_res),
-        r0=jnp.zeros(n_res),
-        J=jnp.zeros((n_res, P)),
-        D=jnp.zeros(P),
-        solved=jnp.zeros(n_rows, bool),
-        done=jnp.array(False),
-    )
-    c = jax.lax.while_loop(cond, body, init)
-    # the last evaluated point: J, r and solved belong to it
-    return unravel(c["f_prev"]), c["done"], c["k"], c["J"], c["solved"], c["r0"], c["r"]
+        u = np.where(on, (f - flat0) / np.where(on, D, 1.0), 0.0)
+        du = np.where(on, (f - f_prev) / np.where(on, D, 1.0), 0.0)
+        small_u = np.max(np.abs(du) / (atol + rtol * np.abs(u)), initial=0.0) < 1
+        small_r = np.max(np.abs(r - r_prev) / (atol + rtol * np.abs(r)), initial=0.0) < 1
+        done = k > 0 and small_u and small_r
+        f_prev, r_prev, k = f, r, k + 1
+        if not done:
+            f = f + D * _gram_step(D[:, None] * G * D[None, :], D * g, rcond)
+    return unravel(jnp.asarray(f_prev)), done, k, J, solved, r0, r
 
 
 @jit
@@ -350,19 +394,20 @@ def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_n
     """Fit in Jacobi-scaled variables (θ = θ0 + D·mask·u, D = 1 / column norms of the
     Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps. `mask` (P,)
     (0/1, traced) freezes parameters without recompiling, so nested models and folds of one
-    data set share one compilation. "gauss_newton": `_gauss_newton`, one program;
-    "levenberg_marquardt": optimistix's LM between two Jacobian evaluations (the start's
+    data set share one compilation. "gauss_newton": `_gauss_newton`, one compiled program per
+    model structure, whatever the number of stops; "levenberg_marquardt": optimistix's LM
+    between two Jacobian evaluations (the start's
     sets D).
 
     Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ)."""
     if method == "gauss_newton":
         return _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond)
-    J0, r0, _ = jacobian(problem, layout, theta0)
-    D = _scales(J0, mask)
+    J0, r0, _ = jacobian_in_chunks(problem, layout, theta0)
+    D = jnp.asarray(_scales(J0.T @ J0, np.asarray(mask, float)))
     value, converged, steps = _levenberg_marquardt(
         problem, layout, theta0, D, rtol, atol, max_steps
     )
-    J, r, solved = jacobian(problem, layout, value)
+    J, r, solved = jacobian_in_chunks(problem, layout, value)
     return value, converged, steps, J, solved, r0, r
 
 
@@ -746,7 +791,7 @@ def validate(
     held-out poses), in the calibration's instrument frames (sessions matched by order of
     first appearance)."""
     problem = make_problem(nominal, data, cal.effects_nominal, cal.bases, compensated)
-    res = np.asarray(residual_jit(cal.theta, (problem, cal.layout))).reshape(-1, 6)
+    res = weighted_residual(problem, cal.layout, cal.theta)
     mask = np.isfinite(data.measured)
     w = np.asarray(problem.weight)
     phys = np.where(mask, res / np.where(mask, w, 1.0), np.nan)
@@ -1193,7 +1238,7 @@ def set_aside_gross_errors(
         problem = make_problem(
             st.problem.nominal, original, cal.effects_nominal, cal.bases, compensated
         )
-        res = np.asarray(residual_jit(cal.theta, (problem, cal.layout))).reshape(-1, 6)
+        res = weighted_residual(problem, cal.layout, cal.theta)
         w = np.asarray(problem.weight)
         out = []
         for r, c, z in found:

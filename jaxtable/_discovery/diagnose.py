@@ -54,9 +54,9 @@ from .._calibration.fit import (
     Calibration,
     Setup,
     fit,
-    residual_jit,
     setup,
     warn_not_physical,
+    weighted_residual,
 )
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements, require_measured
@@ -986,7 +986,7 @@ def _final_gross_errors(diag: "Diagnosis") -> list:
         cal = fit(st, free, weight=weight, noise=diag.noise_mode)
     if not cells:
         return []
-    res = np.asarray(residual_jit(cal.theta, (st.problem, st.layout))).reshape(-1, 6)
+    res = weighted_residual(st.problem, st.layout, cal.theta)
     stated = np.asarray(st.problem.weight)
     out = []
     for r, c, z in cells:
