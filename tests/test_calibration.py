@@ -257,7 +257,7 @@ def test_truncated_step_is_the_truncated_pseudo_inverse():
     identifiable column (σ = 7e-5 of the largest, kept): a step that differs by rounding
     amplified by κ² (κ = σ_max / σ of the weakest kept direction: the price of the Gram
     matrix; an SVD would amplify by κ), so the same change of the residual, A·step, to
-    1e-7 (of ~1). Full rank: least squares."""
+    1e-7 (of ~1). Full rank: least squares. A NaN entry: a step of NaN."""
     from jaxtable._calibration.fit import _truncated_step
 
     rng = np.random.default_rng(3)
@@ -287,6 +287,8 @@ def test_truncated_step_is_the_truncated_pseudo_inverse():
         -np.linalg.lstsq(C, r, rcond=None)[0],
         rtol=1e-6,
     )
+    B[7, 2] = np.nan  # a residual or Jacobian that is not finite: no step (not an error)
+    assert np.all(np.isnan(_truncated_step(B, r, 1e-6)))
 
 
 def test_fits_of_any_number_of_stops_share_one_compiled_program(table):

@@ -253,3 +253,19 @@ def test_neighbours_are_the_nearest_other_rows():
     assert rows[nn[i10]].tolist().count(11) == 1 and 10 not in rows[nn[i10]]
     for i in np.flatnonzero((rows >= 20) & (rows < 26)):
         assert set(rows[nn[i]]) <= set(range(20, 26)) - {rows[i]}
+
+
+def test_agreement_is_the_neighbour_sum_written_out():
+    """A = Σ_i Σ_{j ∈ NN(i)} e_i·e_j / (k Σ_i |e_i|²), written out row by row, for a batch
+    of residual sets (the Monte Carlo draws) and for one."""
+    from jaxtable._discovery.structure import _agreement
+
+    rng = np.random.default_rng(5)
+    e = rng.normal(size=(4, 30, 6))
+    nn = neighbours(rng.normal(size=(30, 2)), 3, np.arange(30))
+    by_hand = [
+        sum(e[b, i] @ e[b, j] for i in range(30) for j in nn[i]) / (3 * np.sum(e[b] ** 2))
+        for b in range(4)
+    ]
+    np.testing.assert_allclose(_agreement(e, nn), by_hand, rtol=1e-12)
+    np.testing.assert_allclose(_agreement(e[2], nn), by_hand[2], rtol=1e-12)

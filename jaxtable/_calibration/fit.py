@@ -310,7 +310,10 @@ def _gram_step(G, g, rcond):
     1e-4 is exact to ~1e-8 relative, and near the truncation level to ~1e-4; the next
     Gauss-Newton step corrects it. The columns of A are scaled to unit norm (`_scales`), so
     λ_max ≤ P and the truncation level rcond² λ_max (1e-12 λ_max) stays ~100× above the
-    eigenvalues' rounding error (~P ε λ_max)."""
+    eigenvalues' rounding error (~P ε λ_max). A G or g that is not finite gives a step of
+    NaN (the fit then stops there and `_fit_once` falls back to LM), not LAPACK's error."""
+    if not (np.all(np.isfinite(G)) and np.all(np.isfinite(g))):
+        return np.full(np.shape(g), np.nan)
     lam, V = np.linalg.eigh(G)
     keep = lam > rcond**2 * lam[-1]
     return -V @ (np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0) * (V.T @ g))
@@ -332,8 +335,8 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
     (`jacobian_in_chunks`: one compiled program whatever the number of stops, so a file of
     a new length fits without compiling); the step is a P × P eigen-decomposition of the
     Gram matrix, formed in numpy (for 900 × 164 in 0.8 ms, where XLA's CPU product took
-    3.6). The start's Jacobian sets D; the last one is the
-    Jacobian at the returned θ. Stopping rule: optimistix's Cauchy rule for its
+    3.6). The start's Jacobian sets D; the last one is the Jacobian at the returned θ (at
+    least one is evaluated, whatever `max_steps`). Stopping rule: optimistix's Cauchy rule for its
     `GaussNewton`: stop at the evaluated point u_k when max|u_k − u_k−1| / (atol + rtol·|u_k|)
     < 1 and max|r_k − r_k−1| / (atol + rtol·|r_k|) < 1.
 
@@ -341,7 +344,6 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
     arrays and θ as `theta0`'s pytree."""
     flat0, unravel = ravel_pytree(theta0)
     flat0, mask = np.asarray(flat0), np.asarray(mask, float)
-    P = flat0.size
     blocks = _stop_blocks(problem)
 
     def evaluate(f):
@@ -350,8 +352,7 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
 
     f, f_prev, r_prev = flat0, flat0, None
     k, done, D, r0 = 0, False, None, None
-    J, r, solved = np.zeros((0, P)), np.zeros(0), np.zeros(0, bool)
-    while not done and k < max_steps and np.all(np.isfinite(f)):
+    while k == 0 or (not done and k < max_steps and np.all(np.isfinite(f))):
         J, r, solved, G, g = evaluate(f)
         if k == 0:
             D, r0, r_prev = _scales(G, mask), r, r

@@ -142,9 +142,11 @@ def neighbours(x: np.ndarray, k: int, rows: np.ndarray) -> np.ndarray:
 
 
 def _agreement(e: np.ndarray, nn: np.ndarray):
-    """A for residuals e (..., R, C) and neighbour indices nn (R, k)."""
+    """A for residuals e (..., R, C) and neighbour indices nn (R, k). The sum runs over the k
+    neighbour ranks, gathering one copy of e at a time: gathering all k at once made a
+    (..., R, k, C) array (100 Monte Carlo draws of 10,000 stops: 144 MB), ~2× slower."""
     k = nn.shape[1]
-    num = np.einsum("...rc,...rkc->...", e, e[..., nn, :])
+    num = sum(np.einsum("...rc,...rc->...", e, e[..., nn[:, j], :]) for j in range(k))
     return num / (k * np.einsum("...rc,...rc->...", e, e))
 
 
