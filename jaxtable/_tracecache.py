@@ -132,12 +132,17 @@ def _slots(leaves) -> list:
     return [_Slot(i) for i in range(len(leaves))]
 
 
-def _aval(x) -> tuple:
-    return np.shape(x), np.dtype(x.dtype).str, bool(getattr(x, "weak_type", False))
+def _avals(xs) -> tuple:
+    """(shape, dtype, weak type) of each array. One call for all of a call's arrays: the
+    repeat path (`_repeat`) compares them on every call, ~70 arrays for a fit's block."""
+    return tuple(
+        (np.shape(x), np.dtype(x.dtype).str, bool(getattr(x, "weak_type", False))) for x in xs
+    )
 
 
-def _sharded(x) -> bool:
-    return isinstance(x, jax.Array) and len(x.sharding.device_set) > 1
+def _sharded(xs) -> bool:
+    """Whether any of the arrays is spread over several devices."""
+    return any(isinstance(x, jax.Array) and len(x.sharding.device_set) > 1 for x in xs)
 
 
 def _key(fun, options: dict, leaves, static_bytes: bytes) -> str:
@@ -148,7 +153,7 @@ def _key(fun, options: dict, leaves, static_bytes: bytes) -> str:
         jax.default_backend(),
         str(jax.config.jax_enable_x64),
         repr(sorted(options.items())),
-        repr([_aval(x) for x in leaves]),
+        repr(list(_avals(leaves))),
     )
     for part in parts:
         h.update(part.encode() + b"\0")
@@ -217,7 +222,10 @@ def _export(fun, static, treedef, leaves, options: dict):
         return arrays
 
     specs = [
-        jax.ShapeDtypeStruct(np.shape(x), np.dtype(x.dtype), weak_type=_aval(x)[2]) for x in leaves
+        jax.ShapeDtypeStruct(
+            np.shape(x), np.dtype(x.dtype), weak_type=bool(getattr(x, "weak_type", False))
+        )
+        for x in leaves
     ]
     exported = export.export(jax.jit(flat))(*specs)
     return exported, structure["template"]
@@ -285,11 +293,11 @@ def _repeat(fun, options: dict, args: tuple, kwargs: dict):
         return None, leaves, None
     if record is None:
         return sig, leaves, None
-    key, objects, arrays = record
-    if all(leaves[i] is x for i, x in objects) and all(
-        _aval(leaves[i]) == a and not _sharded(leaves[i]) for i, a in arrays
-    ):
-        return sig, leaves, key
+    key, objects, (index, avals) = record
+    if all(leaves[i] is x for i, x in objects):
+        arrays = [leaves[i] for i in index]
+        if _avals(arrays) == avals and not _sharded(arrays):
+            return sig, leaves, key
     return sig, leaves, None
 
 
@@ -299,8 +307,8 @@ def _remember(sig, leaves, key: str) -> None:
     if len(_REPEATS) >= MAX_REPEATS:
         _REPEATS.clear()
     objects = tuple((i, x) for i, x in enumerate(leaves) if not eqx.is_array(x))
-    arrays = tuple((i, _aval(x)) for i, x in enumerate(leaves) if eqx.is_array(x))
-    _REPEATS[sig] = (key, objects, arrays)
+    index = tuple(i for i, x in enumerate(leaves) if eqx.is_array(x))
+    _REPEATS[sig] = (key, objects, (index, _avals([leaves[i] for i in index])))
 
 
 def _run(entry, leaves):
@@ -330,7 +338,7 @@ def call(fun, options: dict, args: tuple, kwargs: dict, plain):
     leaves, treedef = jax.tree.flatten(dynamic)
     # the key pickles the arguments as objects, each array replaced by its place
     static_bytes = _static_bytes(eqx.combine(jax.tree.unflatten(treedef, _slots(leaves)), static))
-    if static_bytes is None or any(_sharded(x) for x in leaves):
+    if static_bytes is None or _sharded(leaves):
         return plain()
     key = _key(fun, options, leaves, static_bytes)
     entry = _MEMORY.get(key) or _entry(key, fun, static, treedef, leaves, options, folder)
