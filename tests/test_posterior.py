@@ -13,7 +13,8 @@ import pytest
 import jaxtable as jt
 from jaxtable._calibration.fit import fit, setup
 from jaxtable._calibration.instruments import tracker6
-from jaxtable._calibration.posterior import SnookerMove, posterior, predictive_bands
+from jaxtable._calibration.moves import SnookerMove
+from jaxtable._calibration.posterior import posterior, predictive_bands
 from jaxtable._calibration.simulate import perturb_table, plan_random, plan_x_line, simulate
 from jaxtable._reports.posterior import corner_plot, plot_bands
 
