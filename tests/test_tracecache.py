@@ -138,6 +138,39 @@ def test_a_repeated_call_finds_its_program_without_pickling_its_arguments(
     np.testing.assert_allclose(lengths(table, pose), first, rtol=0, atol=1e-12)
 
 
+def test_device_arrays_run_the_program_compiled_for_host_arrays(table, store):
+    """A stored program's caller, compiled for host arrays, runs uncommitted device arrays
+    as they are (no copy back to the host and over again) and an array committed to a
+    device as a host array (its placement would compile the caller again): the same
+    numbers, nothing compiled."""
+    from conftest import compiled_programs
+
+    lengths = _jit.jit(jt._kinematics.leg_lengths)
+    pose = np.array([10.0, 0.0, 5.0, 0.01, 0.0, 0.02])
+    first = lengths(table, pose)
+    (key,) = _tracecache._MEMORY
+    run, template = _tracecache._MEMORY[key]
+    received = []
+
+    def spy(*args):
+        received.append(args)
+        return run(*args)
+
+    _tracecache._MEMORY[key] = (spy, template)
+    on_device = jnp.asarray(pose)
+    committed = jax.device_put(pose, jax.devices()[0])
+    assert not on_device.committed and committed.committed
+    with compiled_programs() as names:
+        for x in (on_device, committed, pose.copy()):
+            np.testing.assert_array_equal(lengths(table, x), first)
+    assert names == []
+    assert len(received) == 3 and all(len(a) == len(received[0]) for a in received)
+    passed = [args[-1] for args in received]  # the pose: the last of (table, pose)
+    assert passed[0] is on_device  # as it is
+    assert isinstance(passed[1], np.ndarray)  # the committed one as a host array
+    np.testing.assert_array_equal(passed[1], pose)
+
+
 def test_code_from_outside_jaxtable_is_traced_as_before(table, store):
     # the function itself, or a function among the static arguments, from a test module:
     # pickle would store it by name, and its code is not in the fingerprint
