@@ -222,10 +222,8 @@ def _export(fun, static, treedef, leaves, options: dict):
         return arrays
 
     specs = [
-        jax.ShapeDtypeStruct(
-            np.shape(x), np.dtype(x.dtype), weak_type=bool(getattr(x, "weak_type", False))
-        )
-        for x in leaves
+        jax.ShapeDtypeStruct(shape, np.dtype(dtype), weak_type=weak)
+        for shape, dtype, weak in _avals(leaves)
     ]
     exported = export.export(jax.jit(flat))(*specs)
     return exported, structure["template"]
