@@ -46,7 +46,17 @@ from .measurements import (
     check_units,
     require_measured,
 )
-from .noise import NoiseEstimate, NoiseModel, group_scales, noise_model
+from .noise import (
+    NoiseEstimate,
+    NoiseModel,
+    column_groups,
+    equal_sigma_ps,
+    group_scales,
+    noise_model,
+    pool_columns,
+    pooled_scales,
+    robust_scales,
+)
 from .noise import estimate as noise_estimate
 from .outliers import ALPHA, GrossError, without
 from .outliers import screen as screen_gross_errors
@@ -840,10 +850,13 @@ def setup(
     compensated: bool | None = None,
     estimate_frame: bool = True,
     sigma: dict | None = None,
+    column_ratio: dict | None = None,
 ) -> Setup:
     """Prepare `data` for fitting the `free` parameters of `nominal` + `effects` (see
     `calibrate`). Every block in `free` gets a θ entry (zero = the start value). `sigma`:
-    {column: σ (mm / rad)} stated by the user (overrides the file's σ columns)."""
+    {column: σ (mm / rad)} stated by the user (overrides the file's σ columns);
+    `column_ratio`: the noise groups' column ratios, fixed (`noise.noise_model`; default
+    None: each fit tests one σ per group)."""
     free = params.as_names(free)
     require_measured(data)
     check_units(data)
@@ -865,7 +878,7 @@ def setup(
         for n in JOINTS
     }
     params.check(nominal, eff, free, allow_shared=True)
-    noise = noise_model(data.measured, data.sigma, sigma)
+    noise = noise_model(data.measured, data.sigma, sigma, column_ratio)
     problem = make_problem(
         nominal, data, eff, bases, compensated, used_columns(eff, free), noise.sigma0
     )
@@ -921,7 +934,6 @@ def fit(
     cells = st.mask & use[:, None]
     nm = st.noise or noise_model(np.where(st.mask, 0.0, np.nan), None)
     G = len(nm.names)
-    scale = np.ones(G)
     kw = dict(
         rtol=rtol,
         atol=atol,
@@ -930,24 +942,51 @@ def fit(
         method=method,
     )
     groups = np.asarray(nm.groups)
+    # the scales are kept per column of each group (G, 6): one per group unless the data
+    # reject that (`noise.pool_columns`), or in the noise model's fixed ratios
+    by_column = column_groups(groups)
+    # fixed ratios scale the σ the noise is estimated from ("fixed": weights as they are)
+    fixed = nm.ratio is not None and noise == "estimate"
+    column_scale = np.ones((G, 6)) if not fixed else np.asarray(nm.ratio, float).copy()
+    uneven = np.array(
+        [fixed and np.ptp(column_scale[g, list(c)]) > 0 for g, c in enumerate(nm.columns)], bool
+    )
+    split = uneven.copy()
     start = theta0
     cal, red_g = None, np.zeros(G)
     iterations = 0
     for _ in range(8 if noise == "estimate" else 1):
-        w = np.where(groups >= 0, base / scale[np.maximum(groups, 0)], 0.0)
+        w = np.where(groups >= 0, base / column_scale.reshape(-1)[np.maximum(by_column, 0)], 0.0)
         cal = _fit_once(st, free_mask, use, w, theta0=start, **kw)
         iterations += 1
         red = cal.redundancy  # = noise.redundancy(cal.jacobian), without a second SVD
-        s_new, red_g = group_scales(cal.residual, red, groups, cells)
+        s_col, red_col = group_scales(cal.residual, red, by_column, cells, n_groups=G * 6)
+        implied_col, red_col = (column_scale * s_col.reshape(G, 6), red_col.reshape(G, 6))
+        # a group's scale while its columns share one: that one times what the group's
+        # residuals imply (Σ e² / Σ r over all its cells)
+        s_g, red_g = group_scales(cal.residual, red, groups, cells, n_groups=G)
+        robust = column_scale * robust_scales(cal.residual, red, by_column, cells, G * 6).reshape(
+            G, 6
+        )
+        if fixed:  # the ratios kept, the groups' scales estimated
+            weights = column_scale * s_g[:, None]
+            p_equal = equal_sigma_ps(robust, red_col)
+            pooled = np.where(uneven, pooled_scales(implied_col, red_col), weights[:, 0])
+        else:
+            weights, pooled, split, p_equal = pool_columns(
+                implied_col, red_col, split, column_scale[:, 0] * s_g, robust
+            )
         if noise != "estimate":
             break
-        scale = scale * s_new
+        change = weights / column_scale
+        column_scale = weights
         start = cal.theta  # warm start the refit
-        if np.all(np.abs(s_new - 1.0) < 0.01):
+        if np.all(np.abs(change - 1.0) < 0.01):
             break
     # σ / σ0 the last fit's residuals imply (its weights hold it to 1 % when estimated)
-    implied = scale if noise == "estimate" else s_new
-    est = noise_estimate(nm, implied, red_g, cells, noise == "estimate")
+    est = noise_estimate(
+        nm, pooled, red_g, cells, noise == "estimate", implied_col, red_col, split, p_equal
+    )
     cal.noise = dataclasses.replace(est, iterations=iterations)
     return cal
 
@@ -1227,7 +1266,7 @@ def set_aside_gross_errors(
     for _ in range(rounds):
         groups = np.asarray(st.noise.groups) if st.noise is not None else np.zeros((len(data), 6))
         new, _, untested, crowded = screen_gross_errors(
-            cal, st.mask, groups, st.problem.s, st.problem.session
+            cal, st.mask, column_groups(groups), st.problem.s, st.problem.session
         )
         if new is None:
             break

@@ -60,6 +60,7 @@ from .._calibration.fit import (
 )
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements, require_measured
+from .._calibration.noise import SPLIT_ALPHA, column_groups
 from .._calibration.outliers import GrossError, without
 from .._calibration.outliers import screen as screen_gross_errors
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
@@ -486,11 +487,19 @@ def _norm_rms(cal: Calibration, rows: np.ndarray, mask: np.ndarray) -> float:
 
 
 def discovery_setup(
-    nominal: Table, data: Measurements, *, compensated: bool | None = None, sigma=None
+    nominal: Table,
+    data: Measurements,
+    *,
+    compensated: bool | None = None,
+    sigma=None,
+    column_ratio: dict | None = None,
 ) -> Setup:
     """The set-up every discovery fit shares: the geometry, every model effect (the
     dictionary's `discovered` included) at its null value, all of them with θ entries, so
-    that nested models and folds are masks of one compiled program."""
+    that nested models and folds are masks of one compiled program. The noise groups'
+    columns keep fixed σ ratios, `column_ratio` ({group name: (6,)}, default one σ per
+    group): a fit of a model that misses an effect must not take the effect's excess in one
+    column for that column's noise (`diagnose` measures the ratios on its final model)."""
     effects = {name: cls.null(len(data.sessions)) for name, cls in MODEL_EFFECTS.items()}
     free_all = GEOMETRY + tuple(
         dict.fromkeys(
@@ -500,7 +509,47 @@ def discovery_setup(
             for f in params.effect_parameters(form)
         )
     )
-    return setup(nominal, data, free_all, effects=effects, compensated=compensated, sigma=sigma)
+    ratio = {} if column_ratio is None else column_ratio
+    return setup(
+        nominal,
+        data,
+        free_all,
+        effects=effects,
+        compensated=compensated,
+        sigma=sigma,
+        column_ratio=ratio,
+    )
+
+
+def _column_ratios(diag: "Diagnosis") -> dict:
+    """{group name: (6,) σ of its columns relative to the group's} for the noise groups
+    whose columns' noise the final model's residuals say differs (robust test at
+    `SPLIT_ALPHA`); {} if none."""
+    n = diag.final.noise
+    if n is None or diag.noise_mode != "estimate":
+        return {}
+    out = {}
+    for g, name in enumerate(n.names):
+        if n.equal_p[g] < SPLIT_ALPHA:
+            cols = list(n.columns[g])
+            ratio = np.ones(6)
+            ratio[cols] = n.column_scale[g, cols] / n.scale[g]
+            out[name] = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+    return out
+
+
+def _column_words(diag: "Diagnosis", ratio: dict) -> str:
+    n = diag.final.noise
+    parts = []
+    for g, name in enumerate(n.names):
+        if name in ratio:
+            angle = n.columns[g][0] >= 3
+            unit, f = ("arcsec", np.rad2deg(1.0) * 3600) if angle else ("µm", 1e3)
+            cols = ", ".join(
+                f"{params.POSE[c]} {n.column_sigma[g, c] * f:.3g}" for c in n.columns[g]
+            )
+            parts.append(f"{name} {cols} {unit} (one σ: p = {n.equal_p[g]:.2g})")
+    return "; ".join(parts)
 
 
 @one_blas_thread
@@ -529,6 +578,7 @@ def diagnose(
     ambiguity: float = 6.0,
     priority: float = 10.0,
     outliers: str = "set_aside",
+    _column_ratio: dict | None = None,
 ) -> Diagnosis:
     """Find which library effects the data need beyond the geometric model.
 
@@ -570,6 +620,14 @@ def diagnose(
     in turn); if any, they are set aside (not measured) and the diagnosis is made again on
     the data without them (`set_aside` names them; their residuals are from the final model
     fitted without them). "keep": every reading is fitted.
+
+    The columns of a noise group (positions, angles) share one σ in every fit unless the
+    final model's residuals reject that (`noise.SPLIT_ALPHA`, a robust test: a few gross
+    errors do not trigger it); then the diagnosis is made again with each column weighted
+    by the σ the final model found for it, relative to the group's (σ estimated; with
+    noise="fixed" the stated σ are used as they are). Measured on the final model, not per
+    fit, and only where it leaves no structure unexplained: a model that misses an effect
+    would take the effect's excess in one column for that column's noise.
     """
     if isinstance(nominal, Measurements) and isinstance(data, Table):
         warnings.warn(
@@ -588,23 +646,39 @@ def diagnose(
         )
     if outliers not in OUTLIERS:
         raise ValueError(f"outliers must be one of {OUTLIERS}; got {outliers!r}")
-    if outliers == "set_aside":
+    if _column_ratio is None:  # the call a user makes: the passes below
         kw = {k: v for k, v in locals().items() if k in _DIAGNOSE_KEYWORDS}
-        set_aside = []
-        for _ in range(3):
-            diag = diagnose(nominal, data, **{**kw, "outliers": "keep"})
+        set_aside, ratio, decided = [], {}, False
+        for _ in range(4):
+            diag = diagnose(nominal, data, **{**kw, "outliers": "keep", "_column_ratio": ratio})
             # data snooping needs a model that fits: not where structure is left unexplained
-            found = [] if diag.unexplained else _final_gross_errors(diag)
-            set_aside += found
-            if not found:
+            found = [] if diag.unexplained or outliers == "keep" else _final_gross_errors(diag)
+            if found:
+                set_aside += found
+                log(
+                    f"{len(found)} reading(s) set aside as gross errors: "
+                    + "; ".join(g.words() for g in found[:5])
+                    + ("; ..." if len(found) > 5 else "")
+                    + " — diagnosing again without them"
+                )
+                data = without(data, found)
+                continue
+            if decided:
+                break
+            # the columns' noise ratios, from the final model of the data without gross
+            # errors (not where structure is left unexplained: the residuals' spread by
+            # column is then the structure's as much as the noise's)
+            decided = True
+            ratio = {} if diag.unexplained else _column_ratios(diag)
+            if not ratio:
                 break
             log(
-                f"{len(found)} reading(s) set aside as gross errors: "
-                + "; ".join(g.words() for g in found[:5])
-                + ("; ..." if len(found) > 5 else "")
-                + " — diagnosing again without them"
+                "the final model's residuals say the noise differs between columns: "
+                + _column_words(diag, ratio)
+                + " — diagnosing again with each column weighted by its own σ"
             )
-            data = without(data, found)
+        if outliers == "keep":
+            return diag
         diag.set_aside = sorted(set_aside, key=lambda g: -abs(g.z))
         return diag
     base = params.as_names(base)
@@ -615,7 +689,9 @@ def diagnose(
         if name not in EFFECTS:
             raise ValueError(f"unknown effect '{name}'; known: {', '.join(EFFECTS)}")
     data, blank = _without_blank_context(data, base)
-    st = discovery_setup(nominal, data, compensated=compensated, sigma=sigma)
+    st = discovery_setup(
+        nominal, data, compensated=compensated, sigma=sigma, column_ratio=_column_ratio
+    )
     mask = st.mask
     all_rows = np.arange(len(data))
     fold_rows = make_folds(len(data), folds, seed, strata=data.session_index)
@@ -976,7 +1052,9 @@ def _final_gross_errors(diag: "Diagnosis") -> list:
     weight = np.asarray(st.problem.weight, float).copy()
     cells = []
     for _ in range(100):
-        new, _, _, _ = screen_gross_errors(cal, mask, groups, st.problem.s, st.problem.session)
+        new, _, _, _ = screen_gross_errors(
+            cal, mask, column_groups(groups), st.problem.s, st.problem.session
+        )
         if new is None:
             break
         r, c, _ = new
