@@ -56,6 +56,7 @@ from .noise import (
     pool_columns,
     pooled_scales,
     robust_scales,
+    screen_groups,
 )
 from .noise import estimate as noise_estimate
 from .outliers import ALPHA, GrossError, without
@@ -878,7 +879,9 @@ def setup(
         for n in JOINTS
     }
     params.check(nominal, eff, free, allow_shared=True)
-    noise = noise_model(data.measured, data.sigma, sigma, column_ratio)
+    noise = noise_model(
+        data.measured, data.sigma, sigma, column_ratio, data.session_index, data.sessions
+    )
     problem = make_problem(
         nominal, data, eff, bases, compensated, used_columns(eff, free), noise.sigma0
     )
@@ -942,15 +945,18 @@ def fit(
         method=method,
     )
     groups = np.asarray(nm.groups)
-    # the scales are kept per column of each group (G, 6): one per group unless the data
-    # reject that (`noise.pool_columns`), or in the noise model's fixed ratios
-    by_column = column_groups(groups)
+    # the scales are kept per part (column in a session) of each group (G, 6 S): one per
+    # group unless the data reject that (`noise.pool_columns`), or in the noise model's
+    # fixed ratios
+    K = 6 * len(nm.sessions)
+    by_column = column_groups(groups, nm.session, len(nm.sessions))
     # fixed ratios scale the σ the noise is estimated from ("fixed": weights as they are)
     fixed = nm.ratio is not None and noise == "estimate"
-    column_scale = np.ones((G, 6)) if not fixed else np.asarray(nm.ratio, float).copy()
-    uneven = np.array(
-        [fixed and np.ptp(column_scale[g, list(c)]) > 0 for g, c in enumerate(nm.columns)], bool
-    )
+    column_scale = np.ones((G, K))
+    for g, name in enumerate(nm.names):
+        if fixed and name in nm.ratio and len(nm.ratio[name]) == K:
+            column_scale[g] = np.asarray(nm.ratio[name], float)
+    uneven = np.array([np.ptp(column_scale[g, nm.parts(g)]) > 0 for g in range(G)], bool)
     split = uneven.copy()
     start = theta0
     cal, red_g = None, np.zeros(G)
@@ -960,13 +966,13 @@ def fit(
         cal = _fit_once(st, free_mask, use, w, theta0=start, **kw)
         iterations += 1
         red = cal.redundancy  # = noise.redundancy(cal.jacobian), without a second SVD
-        s_col, red_col = group_scales(cal.residual, red, by_column, cells, n_groups=G * 6)
-        implied_col, red_col = (column_scale * s_col.reshape(G, 6), red_col.reshape(G, 6))
+        s_col, red_col = group_scales(cal.residual, red, by_column, cells, n_groups=G * K)
+        implied_col, red_col = (column_scale * s_col.reshape(G, K), red_col.reshape(G, K))
         # a group's scale while its columns share one: that one times what the group's
         # residuals imply (Σ e² / Σ r over all its cells)
         s_g, red_g = group_scales(cal.residual, red, groups, cells, n_groups=G)
-        robust = column_scale * robust_scales(cal.residual, red, by_column, cells, G * 6).reshape(
-            G, 6
+        robust = column_scale * robust_scales(cal.residual, red, by_column, cells, G * K).reshape(
+            G, K
         )
         if fixed:  # the ratios kept, the groups' scales estimated
             weights = column_scale * s_g[:, None]
@@ -1266,7 +1272,11 @@ def set_aside_gross_errors(
     for _ in range(rounds):
         groups = np.asarray(st.noise.groups) if st.noise is not None else np.zeros((len(data), 6))
         new, _, untested, crowded = screen_gross_errors(
-            cal, st.mask, column_groups(groups), st.problem.s, st.problem.session
+            cal,
+            st.mask,
+            screen_groups(groups, st.problem.session, st.layout.n_sessions, st.mask),
+            st.problem.s,
+            st.problem.session,
         )
         if new is None:
             break

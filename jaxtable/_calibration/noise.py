@@ -16,15 +16,16 @@ stated σ the ratio estimated / stated has the 95 % interval ŝ·√(r/χ²_{r, 
 ŝ·√(r/χ²_{r, 0.025}) (r = Σ_g r_i); the stated σ is inconsistent with the data when 1 lies
 outside it.
 
-A group's columns share one σ unless the data say otherwise: real instruments are seldom
-isotropic (a laser tracker measures range better than its transverse directions, a camera
-lateral better than depth). After each VCE update the columns' own scales are compared by
-Bartlett's test (equal variances, χ²(k − 1) with the columns' redundancies as degrees of
-freedom); where it rejects at `SPLIT_ALPHA`, the group's columns keep their own scales for
-the rest of the fit and the report says so. One pooled σ for columns whose noise differs
-misweights them: the noisy column's good readings look like gross errors and its excess like
-structure (a tracker with z 4× as noisy as x and y, no σ stated: 34 of 900 readings set aside
-and "unexplained" structure claimed on noise-only data).
+A group's parts, its columns in each session, share one σ unless the data say otherwise:
+real instruments are seldom isotropic (a laser tracker measures range better than its
+transverse directions, a camera lateral better than depth), and a tracker set up anew may be
+set up farther away. After each VCE update the parts' own scales are compared by Bartlett's
+test (equal variances, χ²(k − 1) with the parts' redundancies as degrees of freedom; robust
+scales, see `pool_columns`); where it rejects at `SPLIT_ALPHA`, the group's parts keep their
+own scales for the rest of the fit and the report says so. One pooled σ for parts whose
+noise differs misweights them: the noisy part's good readings look like gross errors and its
+excess like structure (a tracker with z 4× as noisy as x and y, no σ stated: 34 of 900
+readings set aside and "unexplained" structure claimed on noise-only data).
 """
 
 from dataclasses import dataclass
@@ -91,9 +92,11 @@ class NoiseModel:
       instruments); `columns` (G,) tuple of column indices;
     - `sigma0` (N, 6): σ the weights start from (mm / rad; NaN where not measured);
     - `stated` (G,) bool: σ stated for every cell of the group (file or `sigma=`);
-    - `ratio` (G, 6): the σ of each group's columns relative to one another, fixed (ones:
-      one σ per group); None: each fit tests whether the data reject one σ per group and
-      weights the columns by their own where they do (`pool_columns`).
+    - `ratio`: {group name: (6 S,) σ of its parts relative to one another}, fixed (a group
+      not named: one σ); None: each fit tests whether the data reject one σ per group and
+      weights the parts by their own where they do (`pool_columns`);
+    - `session` (N,) int: each row's session index; `sessions` (S,): their labels. A part
+      of a group is one column in one session, index k = 6 s + c.
     """
 
     groups: np.ndarray
@@ -101,7 +104,13 @@ class NoiseModel:
     columns: tuple
     sigma0: np.ndarray
     stated: np.ndarray
-    ratio: np.ndarray | None = None
+    ratio: dict | None = None
+    session: np.ndarray | None = None
+    sessions: tuple = ("1",)
+
+    def parts(self, g: int) -> list[int]:
+        """Part indices 6 s + c of group g."""
+        return [6 * k + c for k in range(len(self.sessions)) for c in self.columns[g]]
 
 
 def noise_model(
@@ -109,11 +118,14 @@ def noise_model(
     sigma: np.ndarray | None,
     override: dict | None = None,
     ratio: dict | None = None,
+    session=None,
+    sessions=None,
 ):
     """The NoiseModel of a data set: `measured` (N, 6) with NaN for lost cells, the file's
     σ columns `sigma` (N, 6) or None, `override` {column: σ} (mm / rad) from the user;
-    `ratio`: None (each fit tests one σ per group), or {group name: (6,) relative σ of its
-    columns} fixed for every fit (a group not named: one σ)."""
+    `ratio`: None (each fit tests one σ per group), or {group name: (6 S,) relative σ of
+    its parts} fixed for every fit (a group not named: one σ); `session` (N,) each row's
+    session index, `sessions` their labels (default: one session)."""
     mask = np.isfinite(measured)
     n = len(measured)
     stated_cell = np.zeros((n, 6), bool)
@@ -167,13 +179,18 @@ def noise_model(
             names.append(part + instrument_name)
             columns.append(tuple(cols))
     stated = np.array([bool(stated_cell[groups == g].all()) for g in range(len(names))], dtype=bool)
-    fixed = None
-    if ratio is not None:
-        fixed = np.ones((len(names), 6))
-        for g, name in enumerate(names):
-            if name in ratio:
-                fixed[g] = np.asarray(ratio[name], float)
-    return NoiseModel(groups, tuple(names), tuple(columns), sigma0, stated, fixed)
+    session = np.zeros(n, int) if session is None else np.asarray(session, int)
+    sessions = ("1",) if sessions is None else tuple(str(x) for x in sessions)
+    ratio = None if ratio is None else dict(ratio)
+    return NoiseModel(
+        groups, tuple(names), tuple(columns), sigma0, stated, ratio, session, sessions
+    )
+
+
+def part_label(k: int, sessions: tuple) -> str:
+    """'z' for part k = 6 s + c with one session, else 'z (session B)'."""
+    col = params.POSE[k % 6]
+    return col if len(sessions) == 1 else f"{col} (session {sessions[k // 6]})"
 
 
 @dataclass(frozen=True)
@@ -188,14 +205,14 @@ class NoiseEstimate:
       `consistent` (G,): 1 inside it (None where not stated);
     - `redundancy` (G,): Σ r_i, the group's degrees of freedom; `iterations`: fits made;
       `estimated`: False when the stated σ were used as they are (noise="fixed");
-    - per column c (0..5, NaN outside the group's columns), all (G, 6):
-      `column_scale` the column's own σ / starting σ, `column_sigma` and
+    - per part k = 6 s + c (column c in session s; NaN outside the group's parts), all
+      (G, 6 S): `column_scale` the part's own σ / starting σ, `column_sigma` and
       `column_sigma_std` its σ (mm / rad) and standard deviation, `column_redundancy` its
-      degrees of freedom, `column_interval` (G, 6, 2) the 95 % interval of its ratio to the
-      stated σ;
-    - `split` (G,): the data reject one σ for the group's columns (`SPLIT_ALPHA`), so each
-      column was weighted by its own (`scale`, `sigma` are then the pooled values);
-      `equal_p` (G,): that test's p-value (NaN for a single column).
+      degrees of freedom, `column_interval` (G, 6 S, 2) the 95 % interval of its ratio to
+      the stated σ;
+    - `split` (G,): the data reject one σ for the group's parts (`SPLIT_ALPHA`), so each
+      part was weighted by its own (`scale`, `sigma` are then the pooled values);
+      `equal_p` (G,): that test's p-value (NaN for a single part); `sessions` (S,) labels.
     """
 
     names: tuple
@@ -217,6 +234,14 @@ class NoiseEstimate:
     column_interval: np.ndarray
     split: np.ndarray
     equal_p: np.ndarray
+    sessions: tuple = ("1",)
+
+    def _parts(self, g: int) -> list[int]:
+        return [
+            k
+            for k in range(self.column_sigma.shape[1])
+            if k % 6 in self.columns[g] and np.isfinite(self.column_sigma[g, k])
+        ]
 
     def lines(self) -> list[str]:
         """Human-readable lines for a report."""
@@ -248,15 +273,18 @@ class NoiseEstimate:
         return out
 
     def _split_line(self, g: int, name: str, unit: str, f: float) -> str:
-        cols = self.columns[g]
+        cols = self._parts(g)
+        what = ", ".join(params.POSE[c] for c in self.columns[g])
+        if len(self.sessions) > 1:
+            what += " in sessions " + ", ".join(self.sessions)
         head = (
-            f"noise, {name}: one σ for {', '.join(params.POSE[c] for c in cols)} is rejected "
-            f"by the data (p = {self.equal_p[g]:.2g}), each column weighted by its own"
+            f"noise, {name}: one σ for {what} is rejected by the data "
+            f"(p = {self.equal_p[g]:.2g}), each part weighted by its own"
         )
         parts = []
         for c in cols:
             s = (
-                f"{params.POSE[c]} {self.column_sigma[g, c] * f:.3g} ± "
+                f"{part_label(c, self.sessions)} {self.column_sigma[g, c] * f:.3g} ± "
                 f"{self.column_sigma_std[g, c] * f:.2g}"
             )
             if self.stated[g]:
@@ -272,7 +300,7 @@ class NoiseEstimate:
             if self.consistent[g]
             else "INCONSISTENT with the data in "
             + ", ".join(
-                params.POSE[c]
+                part_label(c, self.sessions)
                 for c in cols
                 if not self.column_interval[g, c, 0] <= 1.0 <= self.column_interval[g, c, 1]
             )
@@ -297,11 +325,15 @@ class NoiseEstimate:
                 "split": bool(self.split[g]),
                 "equal_sigma_p": None if np.isnan(self.equal_p[g]) else float(self.equal_p[g]),
                 "column_sigma": {
-                    params.POSE[c]: float(self.column_sigma[g, c]) for c in self.columns[g]
+                    part_label(k, self.sessions): float(self.column_sigma[g, k])
+                    for k in self._parts(g)
                 },
                 "column_ratio": None
                 if not self.stated[g]
-                else {params.POSE[c]: float(self.column_scale[g, c]) for c in self.columns[g]},
+                else {
+                    part_label(k, self.sessions): float(self.column_scale[g, k])
+                    for k in self._parts(g)
+                },
             }
             for g, name in enumerate(self.names)
         }
@@ -348,11 +380,30 @@ def group_scales(
     return s, rg
 
 
-def column_groups(groups) -> np.ndarray:
-    """(N, 6) label g·6 + c of each cell's (group g, column c), −1 where not measured: the
-    cells of one column of one group."""
+def column_groups(groups, session=None, n_sessions: int = 1) -> np.ndarray:
+    """(N, 6) label g·6S + 6s + c of each cell's (group g, session s, column c) for
+    `session` (N,) indices of `n_sessions` sessions (default: one), −1 where not measured:
+    the cells of one part of one group."""
     groups = np.asarray(groups)
-    return np.where(groups >= 0, groups * 6 + np.arange(6), -1)
+    s = np.zeros(len(groups), int) if session is None else np.asarray(session, int)
+    label = groups * (6 * n_sessions) + 6 * s[:, None] + np.arange(6)
+    return np.where(groups >= 0, label, -1)
+
+
+MIN_SCREEN_CELLS = 30
+"""Fewest readings of a part (a column in a session) that get their own robust scale in the
+gross-error screen; a part with fewer shares its column's across the sessions."""
+
+
+def screen_groups(groups, session, n_sessions: int, cells) -> np.ndarray:
+    """(N, 6) labels of the robust scales of the gross-error screen: each part (a column
+    of a group in a session: a tracker set up anew may be noisier) with at least
+    `MIN_SCREEN_CELLS` fitted readings `cells` (N, 6) its own; the others their column's."""
+    part = column_groups(groups, session, n_sessions)
+    column = np.where(np.asarray(groups) >= 0, np.asarray(groups) * 6 + np.arange(6), -1)
+    counts = np.bincount(part[np.asarray(cells) & (part >= 0)], minlength=max(part.max(), 0) + 1)
+    own = (part >= 0) & (counts[np.maximum(part, 0)] >= MIN_SCREEN_CELLS)
+    return np.where(own, part, np.where(column >= 0, part.max() + 1 + column, -1))
 
 
 MAD_EFFICIENCY = 0.368
@@ -445,29 +496,32 @@ def estimate(
     equal_p=None,
 ) -> NoiseEstimate:
     """The NoiseEstimate of a finished fit: `scale` (G,) the final ŝ, `red_g` (G,) the groups'
-    redundancies, `use_cells` (N, 6) the cells fitted; per column (G, 6) `column_scale` and
-    `column_red`, `split` and `equal_p` (G,) from `pool_columns` (default: every column at
+    redundancies, `use_cells` (N, 6) the cells fitted; per part (G, 6 S) `column_scale` and
+    `column_red`, `split` and `equal_p` (G,) from `pool_columns` (default: every part at
     its group's scale, none split)."""
     from scipy.stats import chi2
 
-    G = len(model.names)
+    G, S = len(model.names), len(model.sessions)
+    K = 6 * S
     if column_scale is None:
-        column_scale = np.repeat(np.asarray(scale, float)[:, None], 6, axis=1)
-        column_red = np.zeros((G, 6))
+        column_scale = np.repeat(np.asarray(scale, float)[:, None], K, axis=1)
+        column_red = np.zeros((G, K))
         split, equal_p = np.zeros(G, bool), np.full(G, np.nan)
-    in_group = np.zeros((G, 6), bool)
-    for g, cols in enumerate(model.columns):
-        in_group[g, list(cols)] = True
-    col_sigma = np.full((G, 6), np.nan)
-    col_interval = np.full((G, 6, 2), np.nan)
-    for g, c in zip(*np.nonzero(in_group)):
-        cells = (model.groups == g) & use_cells
-        cells[:, np.arange(6) != c] = False
-        base = np.median(model.sigma0[cells]) if cells.any() else np.nan
-        col_sigma[g, c] = column_scale[g, c] * base
+    in_group = np.zeros((G, K), bool)
+    for g in range(G):
+        in_group[g, model.parts(g)] = True
+    col_sigma = np.full((G, K), np.nan)
+    col_interval = np.full((G, K, 2), np.nan)
+    session = np.zeros(len(model.groups), int) if model.session is None else model.session
+    for g, k in zip(*np.nonzero(in_group)):
+        cells = (model.groups == g) & use_cells & (session == k // 6)[:, None]
+        cells[:, np.arange(6) != k % 6] = False
+        if not cells.any():
+            continue
+        col_sigma[g, k] = column_scale[g, k] * np.median(model.sigma0[cells])
         if model.stated[g]:
-            rc = max(column_red[g, c], 1.0)
-            col_interval[g, c] = column_scale[g, c] * np.sqrt(rc / chi2.ppf([0.975, 0.025], rc))
+            rk = max(column_red[g, k], 1.0)
+            col_interval[g, k] = column_scale[g, k] * np.sqrt(rk / chi2.ppf([0.975, 0.025], rk))
     col_scale = np.where(in_group, column_scale, np.nan)
     col_red = np.where(in_group, column_red, np.nan)
     sigma = np.zeros(G)
@@ -483,8 +537,8 @@ def estimate(
             stated_sigma[g] = base
             interval[g] = scale[g] * np.sqrt(r / chi2.ppf([0.975, 0.025], r))
             ok = interval[g, 0] <= 1.0 <= interval[g, 1]
-            if split[g]:  # each column's own σ against the statement
-                lo, hi = col_interval[g, list(model.columns[g])].T
+            if split[g]:  # each part's own σ against the statement
+                lo, hi = col_interval[g, np.isfinite(col_interval[g, :, 0])].T
                 ok = bool(np.all((lo <= 1.0) & (1.0 <= hi)))
             consistent.append(bool(ok))
         else:
@@ -510,4 +564,5 @@ def estimate(
         col_interval,
         np.asarray(split, bool),
         np.asarray(equal_p, float),
+        model.sessions,
     )

@@ -60,7 +60,7 @@ from .._calibration.fit import (
 )
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements, require_measured
-from .._calibration.noise import SPLIT_ALPHA, column_groups
+from .._calibration.noise import SPLIT_ALPHA, part_label, screen_groups
 from .._calibration.outliers import GrossError, without
 from .._calibration.outliers import screen as screen_gross_errors
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
@@ -522,18 +522,16 @@ def discovery_setup(
 
 
 def _column_ratios(diag: "Diagnosis") -> dict:
-    """{group name: (6,) σ of its columns relative to the group's} for the noise groups
-    whose columns' noise the final model's residuals say differs (robust test at
-    `SPLIT_ALPHA`); {} if none."""
+    """{group name: (6 S,) σ of its parts (columns in sessions) relative to the group's}
+    for the noise groups whose parts' noise the final model's residuals say differs (robust
+    test at `SPLIT_ALPHA`); {} if none."""
     n = diag.final.noise
     if n is None or diag.noise_mode != "estimate":
         return {}
     out = {}
     for g, name in enumerate(n.names):
         if n.equal_p[g] < SPLIT_ALPHA:
-            cols = list(n.columns[g])
-            ratio = np.ones(6)
-            ratio[cols] = n.column_scale[g, cols] / n.scale[g]
+            ratio = n.column_scale[g] / n.scale[g]
             out[name] = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
     return out
 
@@ -546,9 +544,9 @@ def _column_words(diag: "Diagnosis", ratio: dict) -> str:
             angle = n.columns[g][0] >= 3
             unit, f = ("arcsec", np.rad2deg(1.0) * 3600) if angle else ("µm", 1e3)
             cols = ", ".join(
-                f"{params.POSE[c]} {n.column_sigma[g, c] * f:.3g}" for c in n.columns[g]
+                f"{part_label(k, n.sessions)} {n.column_sigma[g, k] * f:.3g}" for k in n._parts(g)
             )
-            parts.append(f"{name} {cols} {unit} (one σ: p = {n.equal_p[g]:.2g})")
+            parts.append(f"{name}: {cols} {unit} (one σ: p = {n.equal_p[g]:.2g})")
     return "; ".join(parts)
 
 
@@ -673,9 +671,9 @@ def diagnose(
             if not ratio:
                 break
             log(
-                "the final model's residuals say the noise differs between columns: "
+                "the final model's residuals say the noise differs between columns or sessions: "
                 + _column_words(diag, ratio)
-                + " — diagnosing again with each column weighted by its own σ"
+                + " — diagnosing again with each weighted by its own σ"
             )
         if outliers == "keep":
             return diag
@@ -1053,7 +1051,11 @@ def _final_gross_errors(diag: "Diagnosis") -> list:
     cells = []
     for _ in range(100):
         new, _, _, _ = screen_gross_errors(
-            cal, mask, column_groups(groups), st.problem.s, st.problem.session
+            cal,
+            mask,
+            screen_groups(groups, st.problem.session, st.layout.n_sessions, mask),
+            st.problem.s,
+            st.problem.session,
         )
         if new is None:
             break
