@@ -856,7 +856,7 @@ def setup(
     """Prepare `data` for fitting the `free` parameters of `nominal` + `effects` (see
     `calibrate`). Every block in `free` gets a θ entry (zero = the start value). `sigma`:
     {column: σ (mm / rad)} stated by the user (overrides the file's σ columns);
-    `column_ratio`: the noise groups' column ratios, fixed (`noise.noise_model`; default
+    `column_ratio`: the noise groups' parts' σ ratios, fixed (`noise.noise_model`; default
     None: each fit tests one σ per group)."""
     free = params.as_names(free)
     require_measured(data)
@@ -923,8 +923,9 @@ def fit(
     `noise`: "estimate" (default) refits with the σ of each noise group scaled until the
     residuals agree with them (variance-component estimation, `jaxtable._calibration.noise`;
     the stated σ, if any, only fix relative weights within a group, and the result says
-    whether they agree with the data); "fixed": the weights as they are (the stated σ, or
-    `weight` (N, 6) = 1/σ when given)."""
+    whether they agree with the data; a group's parts, its columns in each session, get
+    their own scales where the data reject one, or keep the set-up's fixed ratios);
+    "fixed": the weights as they are (the stated σ, or `weight` (N, 6) = 1/σ when given)."""
     if noise not in NOISE:
         raise ValueError(f"noise must be one of {NOISE}; got {noise!r}")
     base = np.asarray(st.problem.weight) if weight is None else np.asarray(weight, float)

@@ -497,9 +497,10 @@ def discovery_setup(
     """The set-up every discovery fit shares: the geometry, every model effect (the
     dictionary's `discovered` included) at its null value, all of them with θ entries, so
     that nested models and folds are masks of one compiled program. The noise groups'
-    columns keep fixed σ ratios, `column_ratio` ({group name: (6,)}, default one σ per
-    group): a fit of a model that misses an effect must not take the effect's excess in one
-    column for that column's noise (`diagnose` measures the ratios on its final model)."""
+    parts (columns in sessions) keep fixed σ ratios, `column_ratio` ({group name: (6 S,)},
+    default one σ per group): a fit of a model that misses an effect must not take the
+    effect's excess in one column for that column's noise (`diagnose` measures the ratios on
+    its final model)."""
     effects = {name: cls.null(len(data.sessions)) for name, cls in MODEL_EFFECTS.items()}
     free_all = GEOMETRY + tuple(
         dict.fromkeys(
@@ -619,13 +620,14 @@ def diagnose(
     the data without them (`set_aside` names them; their residuals are from the final model
     fitted without them). "keep": every reading is fitted.
 
-    The columns of a noise group (positions, angles) share one σ in every fit unless the
-    final model's residuals reject that (`noise.SPLIT_ALPHA`, a robust test: a few gross
-    errors do not trigger it); then the diagnosis is made again with each column weighted
-    by the σ the final model found for it, relative to the group's (σ estimated; with
-    noise="fixed" the stated σ are used as they are). Measured on the final model, not per
-    fit, and only where it leaves no structure unexplained: a model that misses an effect
-    would take the effect's excess in one column for that column's noise.
+    The parts of a noise group (positions, angles), its columns in each session, share one
+    σ in every fit unless the final model of the data without gross errors rejects that
+    (`noise.SPLIT_ALPHA`, a robust test: a few gross errors do not trigger it); then the
+    diagnosis is made again with each part weighted by the σ the final model found for it,
+    relative to the group's (σ estimated; with noise="fixed" the stated σ are used as they
+    are). Measured on the final model, not per fit, and only where it leaves no structure
+    unexplained: a model that misses an effect would take the effect's excess in one column
+    for that column's noise.
     """
     if isinstance(nominal, Measurements) and isinstance(data, Table):
         warnings.warn(
@@ -663,7 +665,7 @@ def diagnose(
                 continue
             if decided:
                 break
-            # the columns' noise ratios, from the final model of the data without gross
+            # the parts' noise ratios, from the final model of the data without gross
             # errors (not where structure is left unexplained: the residuals' spread by
             # column is then the structure's as much as the noise's)
             decided = True
