@@ -959,6 +959,7 @@ def fit(
             column_scale[g] = np.asarray(nm.ratio[name], float)
     uneven = np.array([np.ptp(column_scale[g, nm.parts(g)]) > 0 for g in range(G)], bool)
     split = uneven.copy()
+    p_min = np.full(G, np.inf)  # a split stays: it is reported with the p that made it
     start = theta0
     cal, red_g = None, np.zeros(G)
     iterations = 0
@@ -983,6 +984,8 @@ def fit(
             weights, pooled, split, p_equal = pool_columns(
                 implied_col, red_col, split, column_scale[:, 0] * s_g, robust
             )
+            p_min = np.fmin(p_min, p_equal)
+            p_equal = np.where(split & ~uneven, p_min, p_equal)
         if noise != "estimate":
             break
         change = weights / column_scale
