@@ -110,7 +110,18 @@ class NoiseModel:
 
     def parts(self, g: int) -> list[int]:
         """Part indices 6 s + c of group g."""
-        return [6 * k + c for k in range(len(self.sessions)) for c in self.columns[g]]
+        return group_parts(self.columns[g], len(self.sessions))
+
+
+def group_parts(columns, n_sessions: int) -> list[int]:
+    """Part indices 6 s + c of a group reading `columns` in `n_sessions` sessions."""
+    return [6 * k + c for k in range(n_sessions) for c in columns]
+
+
+def report_unit(columns) -> tuple[str, float]:
+    """(unit, factor from mm / rad) in which a group of `columns` is reported: µm for
+    positions, arcsec for angles."""
+    return ("arcsec", np.rad2deg(1.0) * 3600) if columns[0] >= 3 else ("µm", 1e3)
 
 
 def noise_model(
@@ -237,18 +248,15 @@ class NoiseEstimate:
     sessions: tuple = ("1",)
 
     def _parts(self, g: int) -> list[int]:
-        return [
-            k
-            for k in range(self.column_sigma.shape[1])
-            if k % 6 in self.columns[g] and np.isfinite(self.column_sigma[g, k])
-        ]
+        """Group g's parts that have cells in the fit."""
+        parts = group_parts(self.columns[g], len(self.sessions))
+        return [k for k in parts if np.isfinite(self.column_sigma[g, k])]
 
     def lines(self) -> list[str]:
         """Human-readable lines for a report."""
         out = []
         for g, name in enumerate(self.names):
-            angle = self.columns[g][0] >= 3
-            unit, f = ("arcsec", np.rad2deg(1.0) * 3600) if angle else ("µm", 1e3)
+            unit, f = report_unit(self.columns[g])
             s = f"{self.sigma[g] * f:.3g} ± {self.sigma_std[g] * f:.2g} {unit}"
             dof = f"(dof {self.redundancy[g]:.0f})"
             if self.split[g]:
@@ -400,7 +408,7 @@ def screen_groups(groups, session, n_sessions: int, cells) -> np.ndarray:
     of a group in a session: a tracker set up anew may be noisier) with at least
     `MIN_SCREEN_CELLS` fitted readings `cells` (N, 6) its own; the others their column's."""
     part = column_groups(groups, session, n_sessions)
-    column = np.where(np.asarray(groups) >= 0, np.asarray(groups) * 6 + np.arange(6), -1)
+    column = column_groups(groups)
     counts = np.bincount(part[np.asarray(cells) & (part >= 0)], minlength=max(part.max(), 0) + 1)
     own = (part >= 0) & (counts[np.maximum(part, 0)] >= MIN_SCREEN_CELLS)
     return np.where(own, part, np.where(column >= 0, part.max() + 1 + column, -1))
@@ -411,14 +419,16 @@ MAD_EFFICIENCY = 0.368
 log-variance has the spread of a variance on 0.368 × as many degrees of freedom."""
 
 
-def robust_scales(residual, red, groups, use_cells, n_groups: int) -> np.ndarray:
+def robust_scales(
+    residual, red, groups, use_cells, n_groups: int, min_red: float = 0.1
+) -> np.ndarray:
     """(n_groups,) robust scale of each group's standardised residuals e_i / √r_i (1.4826 ×
-    their median absolute value; 1 where the group has no cell with r_i > 0.1): a few gross
-    errors do not inflate it."""
+    their median absolute value; 1 where the group has no cell with r_i > `min_red`): a few
+    gross errors do not inflate it."""
     e = np.asarray(residual).reshape(-1)
     r = np.asarray(red).reshape(-1)
     gflat = np.asarray(groups).reshape(-1)
-    ok = np.asarray(use_cells).reshape(-1) & (r > 0.1) & (gflat >= 0)
+    ok = np.asarray(use_cells).reshape(-1) & (r > min_red) & (gflat >= 0)
     z = np.abs(e[ok]) / np.sqrt(r[ok])
     out = np.ones(n_groups)
     for g in np.unique(gflat[ok]):  # at most 6 per noise group

@@ -29,6 +29,7 @@ from statistics import NormalDist
 import numpy as np
 
 from .._errors import POSE_COLUMNS
+from .noise import robust_scales
 
 MIN_REDUNDANCY = 0.05
 ALPHA = 0.01
@@ -103,9 +104,11 @@ def screen(cal, mask, groups, extensions, session, alpha: float = ALPHA):
     z = np.zeros_like(w)
     bound = np.full(w.shape, np.inf)
     tested = int(testable.sum())
-    for g in np.unique(groups[testable]):
+    labels = np.unique(groups[testable])
+    scales = robust_scales(e, red, groups, testable, int(labels.max(initial=-1)) + 1, min_red=0.0)
+    for g in labels:
         cells = testable & (groups == g)
-        scale = 1.4826 * np.median(np.abs(w[cells]))
+        scale = scales[g]
         if scale > 0:
             z[cells] = w[cells] / scale
             bound[cells] = threshold(tested, alpha, int(cells.sum()))

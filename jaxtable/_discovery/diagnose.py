@@ -60,7 +60,7 @@ from .._calibration.fit import (
 )
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements, require_measured
-from .._calibration.noise import SPLIT_ALPHA, part_label, screen_groups
+from .._calibration.noise import SPLIT_ALPHA, part_label, report_unit, screen_groups
 from .._calibration.outliers import GrossError, without
 from .._calibration.outliers import screen as screen_gross_errors
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
@@ -542,8 +542,7 @@ def _column_words(diag: "Diagnosis", ratio: dict) -> str:
     parts = []
     for g, name in enumerate(n.names):
         if name in ratio:
-            angle = n.columns[g][0] >= 3
-            unit, f = ("arcsec", np.rad2deg(1.0) * 3600) if angle else ("µm", 1e3)
+            unit, f = report_unit(n.columns[g])
             cols = ", ".join(
                 f"{part_label(k, n.sessions)} {n.column_sigma[g, k] * f:.3g}" for k in n._parts(g)
             )
