@@ -59,7 +59,7 @@ from .noise import (
     screen_groups,
 )
 from .noise import estimate as noise_estimate
-from .outliers import ALPHA, GrossError, without
+from .outliers import ALPHA, TRIAL_ROUNDS, GrossError, without
 from .outliers import screen as screen_gross_errors
 
 JOINTS = params.JOINTS
@@ -880,7 +880,13 @@ def setup(
     }
     params.check(nominal, eff, free, allow_shared=True)
     noise = noise_model(
-        data.measured, data.sigma, sigma, column_ratio, data.session_index, data.sessions
+        data.measured,
+        data.sigma,
+        sigma,
+        column_ratio,
+        data.session_index,
+        data.sessions,
+        data.aside,
     )
     problem = make_problem(
         nominal, data, eff, bases, compensated, used_columns(eff, free), noise.sigma0
@@ -1259,20 +1265,25 @@ def set_aside_gross_errors(
     """Screen fit `cal` of `data` (set-up `st`) for gross errors (`outliers.screen`); while
     one is found, set it aside (not measured) and refit with `run(data) -> (setup, fit)`.
     Returns the last (set-up, fit), the fit with `set_aside` (`GrossError`s, largest first,
-    each with its residual from that fit) and `untested`."""
+    each with its residual from that fit) and `untested`.
+
+    Data snooping needs a model that fits. Where the fit's residuals show structure
+    (`structure_test`), the screen is tried for at most `TRIAL_ROUNDS` readings and kept
+    only if the model refitted without them leaves none: a burst of gross errors (a tracker
+    that lost its beam for three readings) makes structure that goes with them; an effect
+    the model lacks does not, and then nothing is set aside."""
     from .._discovery.structure import TooFewRowsError, structure_test
 
     found = []
     untested = crowded = 0
-    original = data
+    original, first = data, (st, cal)
     try:
         test = structure_test(cal, st)
-        skip = test.words() if test.structure else ""
     except TooFewRowsError as e:  # too few rows to test (or to screen)
-        skip = str(e)
-    if skip:  # data snooping needs a model that fits: not screened
-        cal.set_aside, cal.screen_skipped = [], skip
+        cal.set_aside, cal.screen_skipped = [], str(e)
         return st, cal
+    if test.structure:
+        rounds = min(rounds, TRIAL_ROUNDS)
     for _ in range(rounds):
         groups = np.asarray(st.noise.groups) if st.noise is not None else np.zeros((len(data), 6))
         new, _, untested, crowded = screen_gross_errors(
@@ -1287,6 +1298,11 @@ def set_aside_gross_errors(
         found.append(new)
         data = without(data, [new[:2]])
         st, cal = run(data)
+    if test.structure and (not found or new is not None or structure_test(cal, st).structure):
+        # structure the set-aside readings do not explain: none is a gross error to tell
+        st, cal = first
+        cal.set_aside, cal.screen_skipped = [], test.words()
+        return st, cal
     if found:
         # measured − model of the readings set aside, from the final fit (not fitted there);
         # on every row, so that the sessions keep their frames

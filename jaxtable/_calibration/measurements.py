@@ -47,7 +47,9 @@ class Measurements:
       interferometer along x fills column 0 only);
     - `sigma` (N, 6) standard deviations or None (then the instrument's nominal σ);
     - `temperature`, `payload` (N,) or None; `session` (N,) labels (default all "1");
-    - `extra`: unknown columns, kept as strings and written back.
+    - `extra`: unknown columns, kept as strings and written back;
+    - `aside` (N, 6) bool or None: readings set aside as gross errors (`outliers.without`):
+      NaN in `measured`, but read, so that the row keeps its instrument's set of columns.
     """
 
     cmd_pose: np.ndarray
@@ -58,6 +60,7 @@ class Measurements:
     payload: np.ndarray | None = None
     session: np.ndarray | None = None
     extra: dict = field(default_factory=dict)
+    aside: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.cmd_pose)
@@ -107,6 +110,7 @@ class Measurements:
             take(self.payload),
             take(self.session),
             {k: take(v) for k, v in self.extra.items()},
+            take(self.aside),
         )
 
 

@@ -131,12 +131,15 @@ def noise_model(
     ratio: dict | None = None,
     session=None,
     sessions=None,
+    aside: np.ndarray | None = None,
 ):
     """The NoiseModel of a data set: `measured` (N, 6) with NaN for lost cells, the file's
     σ columns `sigma` (N, 6) or None, `override` {column: σ} (mm / rad) from the user;
     `ratio`: None (each fit tests one σ per group), or {group name: (6 S,) relative σ of
     its parts} fixed for every fit (a group not named: one σ); `session` (N,) each row's
-    session index, `sessions` their labels (default: one session)."""
+    session index, `sessions` their labels (default: one session); `aside` (N, 6) bool or
+    None: readings set aside as gross errors (not measured, no group; their rows keep their
+    instrument)."""
     mask = np.isfinite(measured)
     n = len(measured)
     stated_cell = np.zeros((n, 6), bool)
@@ -153,7 +156,8 @@ def noise_model(
     # the smallest such set that holds its columns (a lost cell is not another instrument).
     # Rows are grouped by their column set as a 6-bit code: loops run over the (at most 64)
     # distinct sets, never over rows.
-    code = mask.astype(int) @ (1 << np.arange(6))
+    read = mask if aside is None else mask | np.asarray(aside, bool)
+    code = read.astype(int) @ (1 << np.arange(6))
     codes, inverse, counts = np.unique(code, return_inverse=True, return_counts=True)
     seen = codes > 0
     frequent = codes[seen & (counts >= max(3, 0.1 * n))]

@@ -34,6 +34,8 @@ from .noise import robust_scales
 MIN_REDUNDANCY = 0.05
 ALPHA = 0.01
 ALONE = 2.5  # mean neighbour z (own direction) below which a reading stands alone
+BURST = 5  # the most readings in a row (one column, in time) a gross error may come in
+TRIAL_ROUNDS = 10  # gross errors the screen may set aside where the fit shows structure
 
 
 @dataclass(frozen=True)
@@ -53,13 +55,17 @@ class GrossError:
 
 def without(data, cells):
     """`data` (Measurements) with the readings `cells` — (row index, column index) pairs or
-    `GrossError`s (1-based rows, column names) — set to not measured (NaN); a copy."""
+    `GrossError`s (1-based rows, column names) — set to not measured (NaN) and marked in
+    `aside` (the instrument read them: `noise.noise_model` keeps each row's set of columns);
+    a copy."""
     measured = np.array(data.measured, float)
+    aside = np.zeros(measured.shape, bool) if data.aside is None else np.array(data.aside, bool)
     for cell in cells:
         if isinstance(cell, GrossError):
             cell = (cell.row - 1, POSE_COLUMNS.index(cell.column))
         measured[cell[0], cell[1]] = np.nan
-    return replace(data, measured=measured)
+        aside[cell[0], cell[1]] = True
+    return replace(data, measured=measured, aside=aside)
 
 
 def threshold(tested: int, alpha: float = ALPHA, group: int | None = None) -> float:
@@ -90,7 +96,12 @@ def screen(cal, mask, groups, extensions, session, alpha: float = ALPHA):
     4.3 sd below it; a gross error pulls them the other way if anything; at 1.5, a planted
     error lost to noise of +1.0σ and +2.3σ at its two stops in time). A model that misses a
     smooth effect (a thermal drift) leaves readings far out whose neighbours are far out
-    too: structure, not gross errors, and kept.
+    too: structure, not gross errors, and kept. Gross errors can come in a burst (a
+    tracker that lost its beam for three readings: each the others' neighbour, all far
+    out): the stops before and after are those past readings beyond their bound the same
+    way, at most `BURST` in a row with it (a longer run is structure), and the three stops
+    nearest in extensions are those not of its burst and not beyond their bound the same
+    way, among its 3 + `BURST` nearest (more of those beyond: structure).
 
     Returns ((row index, column index, z) or None; readings tested; readings not testable;
     readings beyond their bound that did not stand alone). z is measured − model in robust
@@ -120,12 +131,35 @@ def screen(cal, mask, groups, extensions, session, alpha: float = ALPHA):
     session = np.asarray(session)
     crowded = 0
     for r, c in far:
+        # the readings next to it in time, past a burst of at most BURST readings beyond
+        # their bound the same way (a beam lost for several readings: each other's
+        # neighbours, and all far out)
+        beyond = testable[:, c] & (np.sign(z[r, c]) * z[:, c] > bound[:, c])
+        side, burst = [], [r]
+        for step in (-1, 1):
+            k, run = r + step, []
+            while 0 <= k < n and session[k] == session[r]:
+                if testable[k, c] and not beyond[k]:
+                    side.append(k)
+                    break
+                if testable[k, c]:
+                    run.append(k)
+                    if len(run) >= BURST:
+                        break
+                k += step
+            burst += run
+        # the three stops nearest in the legs' extensions, past at most BURST beyond their
+        # bound the same way (gross errors at stops close in extension)
         others = np.flatnonzero(testable[:, c])
-        others = others[others != r]
-        near = others[np.argsort(np.sum((x[others] - x[r]) ** 2, axis=1))[:3]]
-        side = [k for k in (r - 1, r + 1) if 0 <= k < n and testable[k, c]]
-        side = [k for k in side if session[k] == session[r]]
-        if any(len(nb) and np.mean(np.sign(z[r, c]) * z[nb, c]) >= ALONE for nb in (near, side)):
+        others = others[~np.isin(others, burst)]
+        others = others[np.argsort(np.sum((x[others] - x[r]) ** 2, axis=1))]
+        nearest = others[: 3 + BURST]
+        near = nearest[~beyond[nearest]][:3]
+        # a long run or a crowd far out the same way: structure
+        long = len(burst) > BURST or beyond[nearest].sum() > BURST
+        if long or any(
+            len(nb) and np.mean(np.sign(z[r, c]) * z[nb, c]) >= ALONE for nb in (near, side)
+        ):
             crowded += 1
             continue
         # residual = model − measured; z as measured − model

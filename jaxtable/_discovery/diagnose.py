@@ -61,7 +61,7 @@ from .._calibration.fit import (
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements, require_measured
 from .._calibration.noise import SPLIT_ALPHA, part_label, report_unit, screen_groups
-from .._calibration.outliers import GrossError, without
+from .._calibration.outliers import TRIAL_ROUNDS, GrossError, without
 from .._calibration.outliers import screen as screen_gross_errors
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._errors import POSE_COLUMNS
@@ -650,8 +650,9 @@ def diagnose(
         set_aside, ratio, decided = [], {}, False
         for _ in range(4):
             diag = diagnose(nominal, data, **{**kw, "outliers": "keep", "_column_ratio": ratio})
-            # data snooping needs a model that fits: not where structure is left unexplained
-            found = [] if diag.unexplained or outliers == "keep" else _final_gross_errors(diag)
+            # data snooping needs a model that fits: where structure is left unexplained,
+            # only readings whose setting aside leaves none (a burst of gross errors)
+            found = [] if outliers == "keep" else _final_gross_errors(diag, diag.unexplained)
             if found:
                 set_aside += found
                 log(
@@ -1040,17 +1041,19 @@ _DIAGNOSE_KEYWORDS = [
 ]
 
 
-def _final_gross_errors(diag: "Diagnosis") -> list:
+def _final_gross_errors(diag: "Diagnosis", trial: bool = False) -> list:
     """Gross errors of the diagnosis's final model (`outliers.screen`), the largest first:
     found one at a time, the final model refitted without each (zero weight) before the
-    next is sought; each with its residual from the last refit (measured − model)."""
+    next is sought; each with its residual from the last refit (measured − model).
+    `trial` (the final model leaves structure): at most `TRIAL_ROUNDS`, and none unless
+    the refit without them leaves no structure (the rule of `set_aside_gross_errors`)."""
     st, cal = diag.setup, diag.final
     free = np.array([1.0 if n in cal.names else 0.0 for n in st.names])
     groups = np.asarray(st.noise.groups) if st.noise is not None else np.zeros(st.mask.shape)
     mask = np.array(st.mask, bool)
     weight = np.asarray(st.problem.weight, float).copy()
     cells = []
-    for _ in range(100):
+    for _ in range(TRIAL_ROUNDS if trial else 100):
         new, _, _, _ = screen_gross_errors(
             cal,
             mask,
@@ -1067,6 +1070,10 @@ def _final_gross_errors(diag: "Diagnosis") -> list:
         cal = fit(st, free, weight=weight, noise=diag.noise_mode)
     if not cells:
         return []
+    if trial:
+        law = diag.structure
+        if new is not None or structure_test(cal, st, alpha=law.alpha, draws=law.draws).structure:
+            return []
     res = weighted_residual(st.problem, st.layout, cal.theta)
     stated = np.asarray(st.problem.weight)
     out = []
