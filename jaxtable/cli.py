@@ -302,6 +302,7 @@ def _diagnose(args) -> int:
                 sigma=_sigma_arg(args.sigma),
                 folds=args.folds,
                 outliers="keep" if args.keep_outliers else "set_aside",
+                session_steps="keep" if args.keep_sessions else "split",
             )
         check_physical(diag.final)  # before anything is written
     except ValueError as e:
@@ -312,6 +313,8 @@ def _diagnose(args) -> int:
             f"{len(diag.set_aside)} reading(s) set aside as gross errors: "
             + "; ".join(g.words() for g in diag.set_aside)
         )
+    for split in diag.split_sessions:
+        print(split.words())
     print(
         f"selected: {', '.join(map(form_label, diag.selected_forms)) or 'none'}; unexplained: "
         f"{str(diag.unexplained).lower()}; RMS {diag.rms_before:.3f} -> {diag.rms_after:.3f} "
@@ -689,6 +692,13 @@ def build_parser() -> argparse.ArgumentParser:
     compensation(sp)
     noise_options(sp, "estimate")
     outlier_options(sp)
+    sp.add_argument(
+        "--keep-sessions",
+        action="store_true",
+        help="keep the file's sessions (default: where structure is left unexplained, a "
+        "step in time within a session, the instrument or the legs' zeros moved part-way, "
+        "makes the rows after it a new session, named in the report)",
+    )
     sp.add_argument(
         "--alpha",
         type=_number(0.0, above=True, below=1.0),

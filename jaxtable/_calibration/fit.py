@@ -518,6 +518,9 @@ class Calibration:
     untested: int = 0
     crowded: int = 0  # readings beyond the bound whose neighbours are too: structure, kept
     screen_skipped: str = ""  # why the screen did not run (structure the model misses)
+    # where the screen did not run for structure: a step in time within a session that
+    # explains it (`_discovery.changepoint.StepInTime`, found), else None
+    step: object | None = None
 
     def light(self) -> "Calibration":
         """This fit without its arrays of a row per observation and a column per parameter
@@ -576,6 +579,11 @@ class Calibration:
             )
         elif self.set_aside is not None:
             lines.append("gross errors: none (every reading agrees with the fit)")
+        if self.step is not None:
+            lines.append(
+                f"{self.step.words()}: mark rows {self.step.row}… of session "
+                f"{self.step.session} as a session of their own (jaxtable diagnose does)"
+            )
         if self.set_aside is not None and self.crowded:
             lines.append(
                 f"{self.crowded} reading(s) far from the model whose neighbours (in time and in "
@@ -1299,9 +1307,19 @@ def set_aside_gross_errors(
         data = without(data, [new[:2]])
         st, cal = run(data)
     if test.structure and (not found or new is not None or structure_test(cal, st).structure):
-        # structure the set-aside readings do not explain: none is a gross error to tell
+        # structure the set-aside readings do not explain: none is a gross error to tell;
+        # a step in time within a session may (the instrument or the legs' zeros moved):
+        # named where the fit with the rows after it as a session of their own leaves none
+        from .._discovery.changepoint import split_label, split_session, step_scan
+
         st, cal = first
         cal.set_aside, cal.screen_skipped = [], test.words()
+        step = step_scan(cal, st)
+        if step is not None and step.found:
+            label = split_label(original, step)
+            st2, cal2 = run(split_session(original, step.row - 1, label))
+            if not structure_test(cal2, st2).structure:
+                cal.step = step
         return st, cal
     if found:
         # measured − model of the readings set aside, from the final fit (not fitted there);

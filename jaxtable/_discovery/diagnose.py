@@ -68,6 +68,7 @@ from .._errors import POSE_COLUMNS
 from .._jit import jit
 from .._table import Table
 from .._threads import one_blas_thread
+from .changepoint import SessionSplit, split_label, split_session, step_scan
 from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
 from .gp import ResidualGP, residual_gp
 from .structure import (
@@ -367,6 +368,8 @@ class Diagnosis:
     residual_model: ResidualGP | None = None
     # readings set aside as gross errors (`outliers.GrossError`, largest first); None: kept
     set_aside: list | None = None
+    # sessions split at a step in time (`changepoint.SessionSplit`, in the order found)
+    split_sessions: list = field(default_factory=list)
 
     @property
     def rms_sigma_before(self) -> float:
@@ -453,6 +456,7 @@ class Diagnosis:
                 "groups": None if self.final.noise is None else self.final.noise.as_json(),
             },
             "structure": None if self.structure is None else self.structure.as_json(),
+            "sessions_split": [sp.as_json() for sp in self.split_sessions],
             "set_aside": None
             if self.set_aside is None
             else [
@@ -576,6 +580,7 @@ def diagnose(
     ambiguity: float = 6.0,
     priority: float = 10.0,
     outliers: str = "set_aside",
+    session_steps: str = "split",
     _column_ratio: dict | None = None,
 ) -> Diagnosis:
     """Find which library effects the data need beyond the geometric model.
@@ -617,7 +622,21 @@ def diagnose(
     screened for gross errors (`_calibration.outliers`; refitting it without each one found
     in turn); if any, they are set aside (not measured) and the diagnosis is made again on
     the data without them (`set_aside` names them; their residuals are from the final model
-    fitted without them). "keep": every reading is fitted.
+    fitted without them). "keep": every reading is fitted. Where structure is left
+    unexplained, readings the screen would set aside are set aside only if the final model
+    refitted without them leaves none (a burst of gross errors: a tracker that lost its
+    beam for three readings).
+
+    `session_steps`: "split" (default): where structure is left unexplained, the final
+    model is scanned for a step in time within a session (`changepoint.step_scan`: the
+    instrument or the legs' zeros moved part-way through a recording, at the family-wise
+    false-alarm rate `alpha`); a step found makes the rows after it a new session
+    ('<session>@<row>': its own instrument frame; the library's rehoming effect can take
+    the zeros) and the diagnosis is made again, up to `MAX_SPLITS` times (`split_sessions`
+    names each, with the held-out RMS before and after). Where the diagnosis with the
+    splits still leaves structure unexplained, the steps did not explain it (a drift is
+    not a step), and the diagnosis of the file's sessions stands. "keep": sessions as the
+    file has them.
 
     The parts of a noise group (positions, angles), its columns in each session, share one
     σ in every fit unless the final model of the data without gross errors rejects that
@@ -645,10 +664,12 @@ def diagnose(
         )
     if outliers not in OUTLIERS:
         raise ValueError(f"outliers must be one of {OUTLIERS}; got {outliers!r}")
+    if session_steps not in SESSION_STEPS:
+        raise ValueError(f"session_steps must be one of {SESSION_STEPS}; got {session_steps!r}")
     if _column_ratio is None:  # the call a user makes: the passes below
         kw = {k: v for k, v in locals().items() if k in _DIAGNOSE_KEYWORDS}
-        set_aside, ratio, decided = [], {}, False
-        for _ in range(4):
+        set_aside, ratio, decided, splits, first, aside_before = [], {}, False, [], None, 0
+        for _ in range(4 + MAX_SPLITS):
             diag = diagnose(nominal, data, **{**kw, "outliers": "keep", "_column_ratio": ratio})
             # data snooping needs a model that fits: where structure is left unexplained,
             # only readings whose setting aside leaves none (a burst of gross errors)
@@ -662,6 +683,24 @@ def diagnose(
                     + " — diagnosing again without them"
                 )
                 data = without(data, found)
+                continue
+            # structure left that a step in time within a session explains (the instrument
+            # or the legs' zeros moved part-way): a new session from the step
+            step = None
+            if diag.unexplained and session_steps == "split" and len(splits) < MAX_SPLITS:
+                step = step_scan(diag.final, diag.setup, alpha=alpha, draws=draws, seed=seed)
+            if step is not None and not step.found:
+                log(f"  step in time: {step.words()}")
+            if step is not None and step.found:
+                label = split_label(data, step)
+                log(
+                    f"{step.words()} — diagnosing again with rows {step.row}… of session "
+                    f"{step.session} as session '{label}'"
+                )
+                splits.append(SessionSplit(step, label))
+                if first is None:
+                    first, aside_before = diag, len(set_aside)
+                data = split_session(data, step.row - 1, label)
                 continue
             if decided:
                 break
@@ -677,6 +716,18 @@ def diagnose(
                 + _column_words(diag, ratio)
                 + " — diagnosing again with each weighted by its own σ"
             )
+        if splits and diag.unexplained:  # steps that do not explain the structure: none
+            log(
+                "the sessions split at steps in time leave structure unexplained: not "
+                "steps (a drift?); the diagnosis of the file's sessions stands"
+            )
+            diag, set_aside = first, set_aside[:aside_before]
+        elif splits:
+            before, after = _split_gain(first, diag, folds, seed)
+            diag.split_sessions = [
+                dataclasses.replace(sp, heldout_rms_before=before, heldout_rms_after=after)
+                for sp in splits
+            ]
         if outliers == "keep":
             return diag
         diag.set_aside = sorted(set_aside, key=lambda g: -abs(g.z))
@@ -1034,6 +1085,23 @@ def diagnose(
 
 
 # diagnose's keywords, passed on when it diagnoses again without the gross errors
+SESSION_STEPS = ("split", "keep")
+MAX_SPLITS = 2  # sessions a diagnosis splits at steps in time
+
+
+def _split_gain(before: "Diagnosis", after: "Diagnosis", k: int, seed: int) -> tuple:
+    """Held-out RMS of the final models of the diagnosis before a session split and after
+    (σ-normalised in the later model's σ, the later data's folds, the readings both fit)."""
+    mask = np.asarray(before.setup.mask) & np.asarray(after.setup.mask)
+    folds = make_folds(len(after.data), k, seed, strata=after.data.session_index)
+    w0, w1 = np.asarray(before.final.weight), np.asarray(after.final.weight)
+    to_after = np.where(mask, w1 / np.where(mask, w0, 1.0), 0.0)
+    return (
+        heldout_rms(before.final, folds, mask, rescale=to_after),
+        heldout_rms(after.final, folds, mask),
+    )
+
+
 _DIAGNOSE_KEYWORDS = [
     p.name
     for p in inspect.signature(diagnose).parameters.values()

@@ -242,6 +242,17 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
             if diag.set_aside
             else []
         ),
+        *(
+            line
+            for split in diag.split_sessions
+            for line in (
+                f"**Session split at a step in time** (`--keep-sessions` keeps the file's "
+                f"sessions): {split.words()}. The fitted model holds session "
+                f"'{split.label}' (its instrument frame; rehoming offsets where selected): "
+                "mark those rows as a session of their own in the file.",
+                "",
+            )
+        ),
         "**Selected effects:** "
         + (", ".join(map(vocab.form_label, diag.selected_forms)) or "none")
         + ". "

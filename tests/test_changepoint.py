@@ -1,0 +1,251 @@
+"""A step in time within a session: the instrument moved, or the legs' zeros moved (the
+controller homed again), part-way through a recording that the file calls one session."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from scipy.stats import binom, chi2, kstest
+
+import jaxtable as jt
+from jaxtable._calibration.fit import fit_screened
+from jaxtable._discovery.changepoint import split_session, step_scan
+from jaxtable._params import GEOMETRY
+from jaxtable.cli import main
+
+N, AT = 100, 60  # stops; the step comes before row index AT (row AT + 1 of the file)
+FRAME_STEP = (0.03, 0.0, -0.02, 0.0, 0.0, np.deg2rad(5.0 / 3600.0))  # mm, rad
+
+
+def _recording(seed, frame_step=None, zero_step=None, n=N, at=AT):
+    """One session of `n` stops of a 6-D tracker on a table with geometric errors and no
+    other effect; from row index `at` on, the tracker frame moved by `frame_step` or the
+    legs' zeros by `zero_step` (mm)."""
+    table = jt.reference_table()
+    true = jt.perturb_table(table, seed, joint_sigma=0.010, zero_sigma=0.050)
+    plan = jt.plan_random(n, seed)
+    later = true
+    if zero_step is not None:
+        later = jt.replace(true, zero_lengths=np.asarray(true.zero_lengths) + zero_step)
+    frame = np.zeros(6) if frame_step is None else np.asarray(frame_step)
+    parts = [
+        jt.simulate(
+            table,
+            t,
+            plan[rows],
+            jt.tracker6(),
+            effects={},
+            compensated=True,
+            seed=seed + 7 * k,
+            frame=f,
+        )  # fmt: skip
+        for k, (rows, t, f) in enumerate(
+            ((np.arange(at), true, np.zeros(6)), (np.arange(at, n), later, frame))
+        )
+    ]
+    data = jt.Measurements(
+        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("cmd_pose", "measured")),
+        cmd_lengths=np.concatenate([p.cmd_lengths for p in parts]),
+        sigma=np.concatenate([p.sigma for p in parts]),
+    )
+    return table, data
+
+
+def _fit(table, data):
+    return fit_screened(table, data, GEOMETRY, effects={}, outliers="keep")
+
+
+def test_an_instrument_moved_part_way_is_found_where_it_moved():
+    """The tracker knocked before row 61 (x +30 µm, z −20 µm, yaw +5″): the scan names row
+    61 and the instrument frame, and its linearised step is the one an exact refit with
+    rows 61… as a session of their own finds (the difference of the two sessions' frames)
+    to a tenth of its standard deviation."""
+    table, data = _recording(1, frame_step=FRAME_STEP)
+    st, cal = _fit(table, data)
+    step = step_scan(cal, st)
+    assert step.found and step.row == AT + 1 and step.kind == "instrument frame", step.words()
+    assert step.session == "1" and step.p_value < 0.002
+    _, split = _fit(table, split_session(data, AT, "1@61"))
+    frames = np.asarray(split.frame)
+    np.testing.assert_array_less(np.abs(step.shift - (frames[1] - frames[0])), 0.1 * step.shift_std)
+    assert abs(step.shift[0] - 0.03) < 0.005  # x, mm: what was planted
+    assert "the residuals step at row 61 (session 1): the instrument moved" in step.words()
+
+
+def test_calibrate_names_the_step_where_its_residuals_show_structure():
+    """`calibrate` on the knocked recording: the residuals show structure, so the
+    gross-error screen does not run, and the report names the step and what to do."""
+    table, data = _recording(1, frame_step=FRAME_STEP)
+    cal = jt.calibrate(table, data, effects={})
+    assert cal.set_aside == [] and cal.screen_skipped
+    assert cal.step is not None and cal.step.row == AT + 1
+    assert "mark rows 61… of session 1 as a session of their own" in cal.report()
+    clean = jt.calibrate(table, _recording(1)[1], effects={})
+    assert clean.step is None and "the residuals step" not in clean.report()
+
+
+def test_legs_homed_again_part_way_are_found_as_a_step_of_their_zeros():
+    """The six zero lengths moved by 10–30 µm before row 61 (the controller homed again):
+    the scan names row 61 and the leg zeros, each leg's step within 4 of its (high-side)
+    standard deviations of the planted one."""
+    zero_step = np.array([0.02, -0.01, 0.03, -0.025, 0.015, -0.02])
+    table, data = _recording(2, zero_step=zero_step)
+    st, cal = _fit(table, data)
+    step = step_scan(cal, st)
+    assert step.found and step.row == AT + 1 and step.kind == "leg zeros", step.words()
+    assert np.all(np.abs(step.shift - zero_step) < 4 * step.shift_std), (step.shift, zero_step)
+    assert step.names == tuple(f"zero_lengths[{i}]" for i in range(1, 7))
+
+
+def test_the_scan_s_false_alarm_rate_holds_over_100_clean_recordings():
+    """No step: over 100 recordings of 40 stops the scan's p-values (largest statistic over
+    20 rows and two kinds, its Monte Carlo null law) are uniform (Kolmogorov–Smirnov), and
+    at most the binomial 99th percentile at 5 % (11) fall under 0.05. The largest Δχ²
+    over rows and kinds taken at its nominal χ² level instead (no correction for the
+    search) falls under 0.05 in 23 of them: it would fail the bound."""
+    p, naive = [], 0
+    for seed in range(100):
+        table, data = _recording(100 + seed, n=40, at=20)
+        st, cal = _fit(table, data)
+        step = step_scan(cal, st, alpha=0.05, draws=200, seed=seed)
+        p.append(step.p_value)
+        naive += bool(chi2.sf(step.delta_chi2, step.dof) < 0.05)
+    p = np.asarray(p)
+    assert np.sum(p < 0.05) <= binom.ppf(0.99, 100, 0.05), np.sort(p)[:15]
+    assert kstest(p, "uniform").pvalue > 1e-3, np.sort(p)
+    bound = binom.ppf(0.99, 100, 0.05)
+    assert naive > bound, naive
+
+
+def test_split_session_names_the_rows_after_the_step():
+    table, data = _recording(3, n=30, at=10)
+    data = dataclasses.replace(data, session=np.array(["A"] * 20 + ["B"] * 10))
+    out = split_session(data, 12, "A@13")
+    assert out.session.tolist() == ["A"] * 12 + ["A@13"] * 8 + ["B"] * 10
+    assert data.session.tolist() == ["A"] * 20 + ["B"] * 10  # a copy
+    with pytest.raises(ValueError, match="already in use"):
+        split_session(out, 3, "B")
+
+
+def test_diagnose_splits_the_session_and_finds_the_model_of_the_whole_file(tmp_path):
+    """The tracker knocked part-way through a recording of a table with the passive spiral
+    (150 stops, temperature rising over the run): with one session the diagnosis added
+    thermal (the step looks like a drift in time) and left structure unexplained; with the
+    step found it diagnoses the rows after it as a session of their own and selects the
+    spiral alone, no structure left, the held-out RMS lower; the JSON names the split."""
+    table = jt.reference_table()
+    rng = np.random.default_rng(7)
+    true = jt.perturb_table(table, 7, joint_sigma=0.010, zero_sigma=0.050)
+    n, at = 150, 90
+    plan = jt.plan_random(n, 7)
+    temperature = 20 + 10 * np.arange(n) / n + rng.normal(0, 0.2, n)
+    eff = {"spiral": jt.Spiral(12.7)}
+    parts = [
+        jt.simulate(
+            table,
+            true,
+            plan[rows],
+            jt.tracker6(),
+            effects=eff,
+            compensated=False,
+            seed=7 + k,
+            frame=f,
+            temperature=temperature[rows],
+        )  # fmt: skip
+        for k, (rows, f) in enumerate(
+            ((np.arange(at), np.zeros(6)), (np.arange(at, n), FRAME_STEP))
+        )
+    ]
+    data = jt.Measurements(
+        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("cmd_pose", "measured")),
+        cmd_lengths=np.concatenate([p.cmd_lengths for p in parts]),
+        sigma=np.concatenate([p.sigma for p in parts]),
+        temperature=temperature,
+    )
+    lines = []
+    diag = jt.diagnose(table, data, log=lines.append, flexible=False, discover=False)
+    assert any("diagnosing again with rows 91… of session 1 as session '1@91'" in x for x in lines)
+    assert [s.step.row for s in diag.split_sessions] == [91]
+    split = diag.split_sessions[0]
+    assert split.step.kind == "instrument frame" and split.label == "1@91"
+    assert diag.selected == ["spiral"] and not diag.unexplained, (diag.selected, lines)
+    assert split.heldout_rms_after < split.heldout_rms_before
+    assert diag.data.sessions == ["1", "1@91"]
+    from jaxtable._reports.diagnose import write_report
+
+    write_report(diag, tmp_path, "knocked.csv", tmp_path / "d.json")
+    doc = json.loads((tmp_path / "d.json").read_text())["sessions_split"]
+    assert doc[0]["row"] == 91 and doc[0]["kind"] == "instrument frame" and doc[0]["found"]
+    assert abs(doc[0]["shift"]["frame[1].x"] - 0.03) < 0.005
+    text = (tmp_path / "report.md").read_text()
+    assert "**Session split at a step in time**" in text and "session '1@91'" in text
+
+
+def test_the_command_line_keeps_the_sessions_when_asked(monkeypatch, tmp_path):
+    """`--keep-sessions` reaches `diagnose` as session_steps="keep"; "split" without it."""
+    import jaxtable._discovery.diagnose as module
+
+    seen = []
+
+    def fake(*args, **kw):
+        seen.append(kw["session_steps"])
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(module, "diagnose", fake)
+    for extra in ([], ["--keep-sessions"]):
+        assert main(["diagnose", "--out", str(tmp_path), *extra]) != 0  # refused: stop here
+    assert seen == ["split", "keep"]
+
+
+def test_diagnose_finds_legs_homed_again_and_selects_rehoming():
+    """The legs' zeros moved by 10–30 µm before row 61 of 100 (one session in the file):
+    the diagnosis splits the session there, as a step of the leg zeros, then selects the
+    library's rehoming effect for the new session (its offsets within 4 sd of the
+    planted step) and leaves no structure."""
+    zero_step = np.array([0.02, -0.01, 0.03, -0.025, 0.015, -0.02])
+    table, data = _recording(2, zero_step=zero_step)
+    diag = jt.diagnose(table, data, base=(), log=lambda _: None, flexible=False, discover=False)
+    assert [(s.step.row, s.step.kind) for s in diag.split_sessions] == [(61, "leg zeros")]
+    assert "rehoming" in diag.selected and not diag.unexplained, diag.selected
+    value, std = diag.effect_params("rehoming")["offsets"]
+    assert np.all(np.abs(np.ravel(value) - zero_step) < 4 * np.ravel(std)), (value, zero_step)
+
+
+def _warming(tau: float | None, n: int = 100):
+    """A table whose legs grow with temperature (11.5e-6 /K, no other effect), the
+    temperature rising 10 K over the run: linearly (`tau` None) or as a warm-up
+    20 + 10 (1 − exp(−row / tau))."""
+    table = jt.reference_table()
+    true = jt.perturb_table(table, 4, joint_sigma=0.010, zero_sigma=0.050)
+    rows = np.arange(n)
+    rise = rows / n if tau is None else 1 - np.exp(-rows / tau)
+    temperature = 20 + 10 * rise + np.random.default_rng(4).normal(0, 0.2, n)
+    data = jt.simulate(table, true, jt.plan_random(n, 4), jt.tracker6(),
+                       effects={"thermal": jt.Thermal(np.full(6, 11.5e-6))}, compensated=True,
+                       seed=4, temperature=temperature)  # fmt: skip
+    return table, data
+
+
+def test_a_drift_is_not_taken_for_a_step():
+    """Thermal growth the geometric model misses, the temperature rising linearly: a step
+    part-way takes out much of it (p < 0.01), but a linear drift of the same parameters
+    takes out more, so no step is found. A warm-up (the temperature rising fast, then
+    levelling off) is better fitted by a step than by a linear drift: `calibrate` names no
+    step (the fit with the rows after it as a session of their own still shows structure),
+    and `diagnose` without the thermal effect in its library splits the session twice,
+    finds structure still unexplained, and keeps the file's sessions."""
+    table, data = _warming(None)
+    st, cal = _fit(table, data)
+    step = step_scan(cal, st)
+    assert step.p_value < 0.01 and step.drift_chi2 > step.delta_chi2 and not step.found
+    assert step.words().startswith("a drift rather than a step")
+    table, data = _warming(10.0)
+    st, cal = _fit(table, data)
+    assert step_scan(cal, st).found  # a step takes out more than a linear drift
+    assert jt.calibrate(table, data, effects={}).step is None
+    lines = []
+    diag = jt.diagnose(table, data, log=lines.append, library=[], discover=False, flexible=False)
+    assert sum("diagnosing again with rows" in x for x in lines) == 2, lines
+    assert any("leave structure unexplained: not steps" in x for x in lines)
+    assert diag.split_sessions == [] and diag.unexplained and diag.data.sessions == ["1"]
