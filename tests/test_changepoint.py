@@ -73,6 +73,26 @@ def test_an_instrument_moved_part_way_is_found_where_it_moved():
     assert "the residuals step at row 61 (session 1): the instrument moved" in step.words()
 
 
+def test_a_large_step_is_placed_where_it_is():
+    """A knock of 150 µm, 30 times the noise: the row and kind found. The scan's statistic,
+    −log of the χ² tail, keeps growing with Δχ² past where the tail underflows (Δχ² beyond
+    ~1,400: a long log; with σ estimated from the residuals a step's Δχ² stays under the
+    fit's degrees of freedom), where scipy.stats' `logsf` returns inf and the first row of
+    a tie would win; it matches the ufunc where that is representable (1e-10 relative)."""
+    from scipy.special import chdtrc
+
+    from jaxtable._discovery.changepoint import _log_sf
+
+    table, data = _recording(5, frame_step=5 * np.asarray(FRAME_STEP))
+    st, cal = _fit(table, data)
+    step = step_scan(cal, st, draws=100)
+    assert step.row == AT + 1 and step.kind == "instrument frame"
+    d, q = np.array([900.0, 1250.0, 1300.0]), np.array([6, 1, 5])
+    np.testing.assert_allclose(_log_sf(d, q), -np.log(chdtrc(q, d)), rtol=1e-10)
+    big = _log_sf(np.array([1400.0, 1500.0, 1e4, 1e5]), np.full(4, 6))
+    assert np.all(np.isfinite(big)) and np.all(np.diff(big) > 0)
+
+
 def test_calibrate_names_the_step_where_its_residuals_show_structure():
     """`calibrate` on the knocked recording: the residuals show structure, so the
     gross-error screen does not run, and the report names the step and what to do."""
@@ -180,6 +200,11 @@ def test_diagnose_splits_the_session_and_finds_the_model_of_the_whole_file(tmp_p
     assert abs(doc[0]["shift"]["frame[1].x"] - 0.03) < 0.005
     text = (tmp_path / "report.md").read_text()
     assert "**Session split at a step in time**" in text and "session '1@91'" in text
+    assert (
+        "![session_steps](session_steps.png)" in text and (tmp_path / "session_steps.png").exists()
+    )
+    rows, chi2 = split.step.profile["instrument frame"]
+    assert rows[np.argmax(chi2)] == 91 and np.isclose(chi2.max(), split.step.delta_chi2)
 
 
 def test_the_command_line_keeps_the_sessions_when_asked(monkeypatch, tmp_path):

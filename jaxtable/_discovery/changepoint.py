@@ -69,6 +69,8 @@ class StepInTime:
     alpha: float
     draws: int
     drift_chi2: float = 0.0
+    # {kind: (rows (R,) 1-based, Δχ² (R,))} over the step's session: the scan's profile
+    profile: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def found(self) -> bool:
@@ -200,10 +202,22 @@ def _kinds(cal: Calibration, st: Setup, w: Whitened, min_rows: int) -> list:
 
 
 def _log_sf(d: np.ndarray, rank: np.ndarray) -> np.ndarray:
-    """−log P(χ²_rank > d), elementwise (rank 0: 0)."""
-    from scipy.stats import chi2
+    """−log P(χ²_rank > d), elementwise (rank 0: 0): the ufunc `chdtrc`, and where that
+    underflows (d beyond ~1,400: a step of 100 µm on 5 µm noise), the asymptotic series of
+    the upper incomplete gamma function, log Q(a, x) = −x + (a − 1) log x − log Γ(a) +
+    log(1 + (a − 1)/x + (a − 1)(a − 2)/x² + …), a = rank/2, x = d/2 (scipy.stats' `logsf`
+    returns inf there, and a tie at inf would pick the first row, not the strongest)."""
+    from scipy.special import chdtrc, gammaln
 
-    return np.where(rank > 0, -chi2.logsf(d, np.maximum(rank, 1)), 0.0)
+    d, q = np.broadcast_arrays(np.asarray(d, float), np.maximum(rank, 1))
+    sf = chdtrc(q, d)
+    out = -np.log(np.maximum(sf, 1e-300))
+    low = sf < 1e-290
+    if low.any():
+        a, x = q[low] / 2.0, d[low] / 2.0
+        series = 1.0 + (a - 1.0) / x + (a - 1.0) * (a - 2.0) / x**2
+        out[low] = x - (a - 1.0) * np.log(x) + gammaln(a) - np.log(series)
+    return np.where(rank > 0, out, 0.0)
 
 
 @one_blas_thread
@@ -254,6 +268,9 @@ def step_scan(
         alpha=alpha,
         draws=draws,
         drift_chi2=kd.drift_chi2(w.e),
+        profile={
+            k.kind: (k.rows[k.k] + 1, k.delta_chi2(w.e)) for k in kinds if k.session == kd.session
+        },
     )
 
 

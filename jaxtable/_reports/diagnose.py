@@ -368,12 +368,39 @@ def _slug(text: str) -> str:
     return "".join(ch if ch.isalnum() else "-" for ch in text).strip("-")
 
 
+def step_figure(diag: Diagnosis, path: Path) -> Path | None:
+    """For each session split at a step in time: the χ² a step at each row takes out of
+    the residuals, per kind (the scan's profile), the row chosen, and what a linear drift
+    of the same parameters takes out."""
+    if not diag.split_sessions:
+        return None
+    plt = pyplot()
+    n = len(diag.split_sessions)
+    fig, axes = plt.subplots(1, n, figsize=(7 * n, 4), squeeze=False)
+    for ax, split in zip(axes[0], diag.split_sessions):
+        step = split.step
+        for kind, (rows, chi2) in step.profile.items():
+            ax.plot(rows, chi2, "-", label=f"a step of the {kind}")
+        ax.axvline(step.row, color="k", lw=0.8, ls=":", label=f"row {step.row}")
+        ax.axhline(step.drift_chi2, color="0.5", lw=0.8, ls="--",
+                   label=f"a linear drift of the {step.kind}")  # fmt: skip
+        ax.set_xlabel(f"first row after the step (session {step.session})")
+        ax.set_ylabel("Δχ² taken out (whitened residuals)")
+        ax.set_title(f"session '{split.label}' from row {step.row}: p = {step.p_value:.2g}")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def write_report(diag: Diagnosis, out: Path, source: str, json_path: Path | None = None):
     """Write report.md, figures and (optionally) the JSON into `out`; return the paths."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     figures = [signature_figure(diag, out / "residual_signatures.png")]
     figures += effect_figures(diag, out)
+    figures.append(step_figure(diag, out / "session_steps.png"))
     figures = [p for p in figures if p is not None]
     plans = []
     diag.plans = []
