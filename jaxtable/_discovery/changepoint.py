@@ -203,7 +203,8 @@ def _kinds(cal: Calibration, st: Setup, w: Whitened, min_rows: int) -> list:
 
 def _log_sf(d: np.ndarray, rank: np.ndarray) -> np.ndarray:
     """−log P(χ²_rank > d), elementwise (rank 0: 0): the ufunc `chdtrc`, and where that
-    underflows (d beyond ~1,400: a step of 100 µm on 5 µm noise), the asymptotic series of
+    underflows (d beyond ~1,400: a step in a long log, whose fit has the degrees of
+    freedom for it), the asymptotic series of
     the upper incomplete gamma function, log Q(a, x) = −x + (a − 1) log x − log Γ(a) +
     log(1 + (a − 1)/x + (a − 1)(a − 2)/x² + …), a = rank/2, x = d/2 (scipy.stats' `logsf`
     returns inf there, and a tie at inf would pick the first row, not the strongest)."""
