@@ -1084,7 +1084,6 @@ def diagnose(
     )
 
 
-# diagnose's keywords, passed on when it diagnoses again without the gross errors
 SESSION_STEPS = ("split", "keep")
 MAX_SPLITS = 2  # sessions a diagnosis splits at steps in time
 
@@ -1102,6 +1101,8 @@ def _split_gain(before: "Diagnosis", after: "Diagnosis", k: int, seed: int) -> t
     )
 
 
+# diagnose's keywords, passed on when it diagnoses again (without the gross errors, with
+# sessions split, with the noise ratios fixed)
 _DIAGNOSE_KEYWORDS = [
     p.name
     for p in inspect.signature(diagnose).parameters.values()
