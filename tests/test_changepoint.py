@@ -203,6 +203,8 @@ def test_diagnose_splits_the_session_and_finds_the_model_of_the_whole_file(tmp_p
     assert (
         "![session_steps](session_steps.png)" in text and (tmp_path / "session_steps.png").exists()
     )
+    model = jt.load_fitted_model(tmp_path / "calibrated_table.toml")  # the new session's frame
+    assert set(model.instrument.frames) == {"1", "1@91"}
     rows, chi2 = split.step.profile["instrument frame"]
     assert rows[np.argmax(chi2)] == 91 and np.isclose(chi2.max(), split.step.delta_chi2)
 
