@@ -30,7 +30,8 @@ Hyper-parameters (weights, length scales, σ_i, s) maximise the restricted likel
 the likelihood of the residuals with J's coefficients integrated out, so the GP never takes
 what the geometry can do), with weak log-normal priors (length scales: median 1 standardised
 unit, log-sd 1; weights: median 1, log-sd 2) that keep flat directions finite, by BFGS
-(optimistix). They are fitted once on
+(optimistix; it also stops where the gradient is flat, `_BFGS`: the per-leg amplitudes σ_i
+have no prior, and those the data do not support fall towards zero). They are fitted once on
 all rows; held-out predictions then refit β and condition g on the other folds' rows only
 (the GP predictor with explicit basis functions: generalised least squares for β, kriging of
 what is left). Fitting the hyper-parameters on every row makes the held-out gain a slight
@@ -42,7 +43,9 @@ say what the residuals depend on as well as thousands would).
 """
 
 from dataclasses import dataclass
+from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -83,7 +86,8 @@ class ResidualGP:
       variance of each additive component of g (σ² of the readings per unit response),
       largest first: what the residuals depend on;
     - `noise`: s (1.0: the residuals' noise is the fit's σ); `log_evidence`: the restricted
-      log likelihood at the optimum (priors included); `converged`; `folds`, `grouped`;
+      log likelihood at the optimum (priors included); `converged`, `steps` (BFGS steps,
+      line-search trials included); `folds`, `grouped`;
     - `rows`: the stops the model was fitted and scored on (indices into the data; all of
       them up to `max_rows`, else that many spread evenly over the run), `rows_total`.
     """
@@ -95,6 +99,7 @@ class ResidualGP:
     noise: float
     log_evidence: float
     converged: bool
+    steps: int
     folds: int
     grouped: bool
     rows: np.ndarray
@@ -207,11 +212,32 @@ def _neg_log_posterior(h, args):
     return nll + prior
 
 
+class _BFGS(optx.BFGS):
+    """optimistix's BFGS that also stops where every gradient component is under `GTOL`.
+
+    The amplitudes of components the residuals do not support (a leg's σ_i with nothing of
+    its own) have no prior and fall towards zero without bound: the objective is flat there
+    and its gradient vanishes, but their logarithm keeps moving, so the Cauchy test on the
+    iterates (`rtol`) never holds. Stopping at a small gradient ends at the same optimum
+    (the objective within ~1e-6 of the longer run) in about half the steps."""
+
+    GTOL: ClassVar[float] = 1e-4  # on the negative log posterior, per log hyper-parameter
+
+    def step(self, fn, y, args, options, state, tags):
+        y, state, aux = super().step(fn, y, args, options, state, tags)
+        worst = jnp.max(
+            jnp.stack([jnp.max(jnp.abs(g)) for g in jax.tree.leaves(state.f_info.grad)])
+        )
+        flat = (worst < self.GTOL) & (state.num_accepted_steps > 1)
+        return y, eqx.tree_at(lambda s: s.terminate, state, state.terminate | flat), aux
+
+
 @jit
 def _fit_hyper(h0, args, max_steps):
-    solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+    solver = _BFGS(rtol=1e-6, atol=1e-6)
     sol = optx.minimise(_neg_log_posterior, solver, h0, args, max_steps=max_steps, throw=False)
-    return sol.value, _neg_log_posterior(sol.value, args), sol.result == optx.RESULTS.successful
+    ok = sol.result == optx.RESULTS.successful
+    return sol.value, _neg_log_posterior(sol.value, args), ok, sol.stats["num_steps"]
 
 
 @jit
@@ -287,7 +313,7 @@ def residual_gp(
         "noise": jnp.log(s0),
     }
     args = tuple(jnp.asarray(a) for a in (y, U, A, s, d, R, vary.astype(float), obs))
-    h, nlp, ok = _fit_hyper(h0, args, max_steps)
+    h, nlp, ok, steps = _fit_hyper(h0, args, max_steps)
     h = jax.tree.map(np.asarray, h)
 
     rows = make_folds(n, folds, seed, grouped=grouped, strata=np.asarray(st.problem.session)[keep])
@@ -325,6 +351,7 @@ def residual_gp(
         noise=noise,
         log_evidence=float(-nlp),
         converged=bool(ok),
+        steps=int(steps),
         folds=folds,
         grouped=grouped,
         rows=keep,
