@@ -1,5 +1,6 @@
 """Table files (TOML): load, validate, save. Schema: DESIGN.md "Table file"."""
 
+import codecs
 import csv
 import io
 import math
@@ -194,16 +195,35 @@ def read_delimited(
     """Header and rows of a delimited text file: UTF-8 (a byte-order mark, as spreadsheet
     programs write, is dropped), any line ending; comma-separated, or semicolon- or
     tab-separated where the header line has no comma (spreadsheets in locales with a decimal
-    comma). Blank lines at the end of the file are not rows; text in another encoding raises
-    `error` naming the row (row 1 = the line after the header) rather than being guessed at.
-    A missing file raises `error` naming the `kind` of file."""
+    comma). Lines before the header that start with `#` (a logger's preamble: instrument,
+    operator, date; in any encoding) and blank lines there are skipped; the header is the
+    first other line, or the last comment where the first other line is a row of as many
+    cells, a number among them (a header written as a comment, as numpy.savetxt does:
+    "# cmd_x,cmd_y,..."). Blank lines at the end of the file are not rows; text in another
+    encoding raises `error` naming the row (row 1 = the line after the header) rather than
+    being guessed at. A missing file raises `error` naming the `kind` of file."""
     path = Path(path)
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
         raise error(f"{kind} file not found: {path}") from None
+    raw = raw.removeprefix(codecs.BOM_UTF8)
+    start, comment = 0, None  # the header line's first byte; the last comment line's
+    while (end := raw.find(b"\n", start)) >= 0:
+        line = raw[start:end].strip()
+        if line and not line.startswith(b"#"):
+            break
+        comment = start if line else comment
+        start = end + 1
+    if raw[start:].strip().startswith(b"#"):  # the last line, a comment: no header
+        start = len(raw)
+    if comment is not None and _header_in_comment(raw[comment:start], raw[start:]):
+        # a header written as a comment over the rows (numpy.savetxt's "# cmd_x,...")
+        start = comment
+        raw = raw[:start] + raw[start:].lstrip().lstrip(b"#").lstrip(b" \t")
+    raw = raw[start:]
     try:
-        text = raw.decode("utf-8-sig")
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
         line = raw.count(b"\n", 0, e.start)
         where = "the header" if line == 0 else f"row {line}"
@@ -221,6 +241,25 @@ def read_delimited(
     while rows and not any(c.strip() for c in rows[-1]):
         rows.pop()
     return header, rows
+
+
+def _header_in_comment(comment: bytes, rest: bytes) -> bool:
+    """Whether the comment line is the header of the rows in `rest`: the first row holds a
+    number (a header names its columns) and as many cells as the comment without its `#`."""
+
+    def cells(line: bytes) -> list:
+        line = line.split(b"\n", 1)[0].strip().lstrip(b"#")
+        return [c.strip() for c in line.replace(b";", b",").replace(b"\t", b",").split(b",")]
+
+    def number(c: bytes) -> bool:
+        try:
+            float(c)
+        except ValueError:
+            return False
+        return True
+
+    row = cells(rest)
+    return any(number(c) for c in row if c) and len(cells(comment)) == len(row)
 
 
 def read_toml(path: Path, error: type[Exception], kind: str) -> dict:

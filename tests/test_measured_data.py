@@ -159,8 +159,10 @@ def _same(m, ref):
 
 def test_spreadsheet_exports_read_as_the_plain_file(tmp_path, sessions):
     """A byte-order mark, CRLF line endings, blank lines at the end, a semicolon- or
-    tab-separated file (a spreadsheet in a decimal-comma locale): the same values as the
-    plain comma-separated file, to the bit. A workspace pose list follows the same rule."""
+    tab-separated file (a spreadsheet in a decimal-comma locale), a logger's preamble of
+    `#` lines (one in Latin-1) before the header, a header written as a comment (numpy's
+    savetxt): the same values as the plain comma-separated file, to the bit. A workspace
+    pose list follows the same rule; a file of comments alone has no header."""
     _, a, _, _ = sessions
     plain = tmp_path / "plain.csv"
     jt.save_measurements(a.subset(np.arange(12)), plain)
@@ -171,12 +173,20 @@ def test_spreadsheet_exports_read_as_the_plain_file(tmp_path, sessions):
         "bom_crlf.csv": ("\ufeff" + "\r\n".join(lines) + "\r\n\r\n\r\n").encode(),
         "semicolon.csv": ("\n".join(x.replace(",", ";") for x in lines) + "\n").encode(),
         "tab.csv": ("\n".join(x.replace(",", "\t") for x in lines) + "\n \n").encode(),
+        "preamble.csv": "# tracker log\r\n\r\n# T = 21 °C\r\n".encode("latin-1")
+        + ("\r\n".join(lines) + "\r\n").encode(),
+        "savetxt.csv": ("# logger\n# " + "\n".join(lines) + "\n").encode(),
     }
     for name, raw in variants.items():
         (tmp_path / name).write_bytes(raw)
         _same(jt.load_measurements(tmp_path / name), ref)
+    (tmp_path / "comments.csv").write_bytes(b"# a log\n# with no rows")
+    with pytest.raises(jt.DataFileError, match="empty file"):
+        jt.load_measurements(tmp_path / "comments.csv")
     ws = tmp_path / "ws.csv"
-    ws.write_bytes(b"\xef\xbb\xbfx;y;z;roll;pitch;yaw\r\n1;2;3;0;0;90\r\n\r\n4;5;6;0;0;0\r\n")
+    ws.write_bytes(
+        b"\xef\xbb\xbf# poses\nx;y;z;roll;pitch;yaw\r\n1;2;3;0;0;90\r\n\r\n4;5;6;0;0;0\r\n"
+    )
     np.testing.assert_allclose(
         jt.load_workspace(ws).poses(), [[1, 2, 3, 0, 0, np.pi / 2], [4, 5, 6, 0, 0, 0]]
     )
