@@ -353,14 +353,6 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
     for its `GaussNewton`: stop at the evaluated point u_k when max|u_k − u_k−1| / (atol +
     rtol·|u_k|) < 1 and max|r_k − r_k−1| / (atol + rtol·|r_k|) < 1.
 
-    A step that makes the fit worse (`_worse`: χ² up, not finite, or the forward kinematics
-    lost on a row) is not taken: the step is made again from the last point with the
-    truncation level 10× coarser (up to `RCOND_MAX`), and after each step taken the level
-    goes back 10× towards `rcond`. Directions just above `rcond` (a 6-D tracker on the x
-    line: σ/σ_max ~ 1e-6) otherwise took steps of ~1e5 scaled units where the
-    linearisation does not hold, and the fit ran to `max_steps` (then fell back to LM).
-    Evaluations of steps not taken count in `steps`.
-
     Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ), numpy
     arrays and θ as `theta0`'s pytree."""
     flat0, unravel = ravel_pytree(theta0)
@@ -373,23 +365,10 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
 
     f, f_prev, r_prev = flat0, flat0, None
     k, done, D, r0 = 0, False, None, None
-    cut, last = rcond, None  # the truncation level; the last accepted point's (J, r, solved, G, g)
     while k == 0 or (not done and k < max_steps and np.all(np.isfinite(f))):
         J, r, solved, G, g = evaluate(f)
         if k == 0:
             D, r0, r_prev = _scales(G, mask), r, r
-        elif _worse(r, solved, r_prev, last[2]) and cut < RCOND_MAX:
-            # the step made the fit worse: it went far along directions the data barely
-            # determine (a step of 1e5 scaled units along σ/σ_max = 1e-6 on an x-only run),
-            # where the linearisation does not hold: drop those (truncate at 10× the level)
-            # and step again from the last point
-            cut, k = 10.0 * cut, k + 1
-            J, r, solved, G, g = last
-            f = f_prev + D * _gram_step(D[:, None] * G * D[None, :], D * g, cut)
-            continue
-        elif k > 0:  # accepted: the next step may use weaker directions again
-            cut = max(rcond, 0.1 * cut)
-        last = (J, r, solved, G, g)
         on = D > 0
         u = np.where(on, (f - flat0) / np.where(on, D, 1.0), 0.0)
         du = np.where(on, (f - f_prev) / np.where(on, D, 1.0), 0.0)
@@ -398,24 +377,8 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
         done = k > 0 and small_u and small_r
         f_prev, r_prev, k = f, r, k + 1
         if not done:
-            f = f + D * _gram_step(D[:, None] * G * D[None, :], D * g, cut)
-    J, r, solved = last[:3]
+            f = f + D * _gram_step(D[:, None] * G * D[None, :], D * g, rcond)
     return unravel(jnp.asarray(f_prev)), done, k, J, solved, r0, r
-
-
-RCOND_MAX = 1e-2
-"""The coarsest truncation `_gauss_newton` backs off to (singular values below 1 % of the
-largest get no step) before it gives up on a step that makes the fit worse."""
-
-
-def _worse(r, solved, r_prev, solved_prev) -> bool:
-    """A Gauss-Newton step made the fit worse: χ² rose by more than rounding (1e-6
-    relative: at convergence it moves by ~1e-12), it is not finite, or the forward
-    kinematics failed on a row where they had converged."""
-    r, r_prev = np.asarray(r), np.asarray(r_prev)
-    chi2, chi2_prev = float(r @ r), float(r_prev @ r_prev)
-    lost = np.any(~np.asarray(solved) & np.asarray(solved_prev))
-    return not np.isfinite(chi2) or bool(lost) or chi2 > chi2_prev * (1.0 + 1e-6) + 1e-12
 
 
 @jit
