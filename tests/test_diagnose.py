@@ -493,3 +493,27 @@ def test_diagnose_cli_refuses_bad_input(tmp_path, capsys):
     assert "row 3" in err and "cmd_y" in err
     assert main(["diagnose", "--effects", "friction", "--out", str(tmp_path / "o")]) == 2
     assert "unknown effect 'friction'" in capsys.readouterr().err
+
+
+def test_structure_left_on_too_few_stops_for_the_gp_is_said_not_raised():
+    """The GP residual model needs two stops a fold; where the structure left unexplained
+    is on fewer (20 stops, 11 folds; a thermal drift with nothing in the library to name
+    it), `diagnose` says so and returns the diagnosis without it (it raised the GP's
+    ValueError and the command line exited with an error)."""
+    nominal = _nominal()
+    n = 20
+    true = perturb_table(nominal, 5)
+    data = simulate(
+        nominal,
+        true,
+        plan_random(n, 4),
+        tracker6(),
+        effects={"spiral": jt.Spiral(12.7), "thermal": jt.Thermal(np.full(6, 3e-5))},
+        compensated=False,
+        seed=4,
+        temperature=20 + 15 * np.arange(n) / n,
+    )
+    said = []
+    diag = diagnose(nominal, data, log=said.append, library=[], discover=False, folds=11)
+    assert diag.unexplained and diag.residual_model is None
+    assert any("too few stops for a GP residual model (20: it needs 22" in s for s in said), said

@@ -1047,7 +1047,12 @@ def diagnose(
     heldout_before = heldout_rms(base_fit, fold_rows, mask, rescale=to_final)
     final_structure = steps[-1].structure if steps[-1].fit is final else test(final)
     residual_model = None
-    if final_structure.structure and flexible:
+    if final_structure.structure and flexible and len(st.mask) < 2 * folds:
+        log(
+            "structure remains that nothing named explains; too few stops for a GP residual "
+            f"model ({len(st.mask)}: it needs {2 * folds} for {folds} folds)"
+        )
+    elif final_structure.structure and flexible:
         log("structure remains that nothing named explains: a GP residual model for hints ...")
         residual_model = residual_gp(final, st, folds=folds, seed=seed)
         log(
