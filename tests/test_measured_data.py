@@ -998,3 +998,32 @@ def test_a_frame_pitched_90_degrees_is_named_as_gimbal_lock_not_as_the_data(sess
         frame[0, 4] = np.deg2rad(pitch)
         text = dataclasses.replace(cal, frame=frame).report()
         assert ("session 1 is pitched" in text and "gimbal lock" in text) == named, text
+
+
+def test_gross_errors_on_top_of_structure_are_listed_not_set_aside():
+    """The screw lead 10 % longer than the table says (not fitted: structure the geometry
+    cannot take) and two gross errors (x +0.25 mm, ~50σ, at row 26; yaw +0.015°, ~27σ, at
+    row 89): the screen's trial finds both, the refit without them still shows the lead's
+    structure, so nothing is set aside, as before; the report now names the two readings
+    as suspects with their measured − model (part of a kept error goes into the fit)."""
+    table = jt.reference_table()
+    data = jt.simulate(
+        table,
+        jt.perturb_table(table, 3),
+        jt.plan_random(120, 3),
+        jt.tracker6(),
+        effects={"spiral": jt.Spiral(12.7 * 1.1)},
+        compensated=False,
+        seed=3,
+    )
+    m = data.measured.copy()
+    m[25, 0] += 0.25
+    m[88, 5] += np.deg2rad(0.015)
+    cal = jt.calibrate(table, dataclasses.replace(data, measured=m), compensated=False)
+    assert cal.set_aside == [] and cal.screen_skipped
+    got = {(g.row, g.column): g.residual for g in cal.suspects}
+    assert set(got) == {(26, "x"), (89, "yaw")}, got
+    assert 0.6 * 0.25 < got[(26, "x")] < 1.1 * 0.25
+    assert 0.6 * 0.015 < got[(89, "yaw")] < 1.1 * 0.015
+    assert "2 reading(s) far from their neighbours, kept in this fit" in cal.report()
+    assert "row 26 x +0.2" in cal.report()

@@ -518,6 +518,10 @@ class Calibration:
     untested: int = 0
     crowded: int = 0  # readings beyond the bound whose neighbours are too: structure, kept
     screen_skipped: str = ""  # why the screen did not run (structure the model misses)
+    # where it did not run for structure: the readings its trial found far from their
+    # neighbours (`outliers.GrossError`, measured − this fit's model, largest first), kept in
+    # the fit: gross errors on top of the structure, or its peaks
+    suspects: list = field(default_factory=list)
     # where the screen did not run for structure: a step in time within a session that
     # explains it (`_discovery.changepoint.StepInTime`, found), else None
     step: object | None = None
@@ -577,6 +581,17 @@ class Calibration:
                 + "), and a gross error cannot be told from it; fit a model that explains "
                 "them (jaxtable diagnose)"
             )
+            if self.suspects:
+                lines.append(
+                    f"{len(self.suspects)} reading(s) far from their neighbours, kept in this "
+                    "fit (gross errors on top of the structure, or its peaks; check them): "
+                    + "; ".join(g.words() for g in self.suspects[:10])
+                    + (
+                        f"; ... and {len(self.suspects) - 10} more"
+                        if len(self.suspects) > 10
+                        else ""
+                    )
+                )
         elif self.set_aside is not None:
             lines.append("gross errors: none (every reading agrees with the fit)")
         if self.step is not None:
@@ -1242,6 +1257,21 @@ def warn_not_physical(cal: "Calibration") -> None:
         )
 
 
+def _gross_errors(problem: "Problem", cal: "Calibration", cells: list) -> list:
+    """`GrossError`s, largest first, of the readings `cells` ((row, column, z) as the screen
+    finds them): measured − model of fit `cal` on `problem`'s readings."""
+    if not cells:
+        return []
+    res = weighted_residual(problem, cal.layout, cal.theta)
+    w = np.asarray(problem.weight)
+    out = []
+    for r, c, z in cells:
+        value = -float(res[r, c] / w[r, c])
+        value = value if c < 3 else float(np.rad2deg(value))
+        out.append(GrossError(r + 1, POSE_COLUMNS[c], value, z))
+    return sorted(out, key=lambda g: -abs(g.z))
+
+
 def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_aside", **kw):
     """`calibrate` returning (set-up, fit): with outliers="set_aside" the set-up of the data
     with the gross errors set aside (`outliers.without`), which the fit was made on. `kw`:
@@ -1314,6 +1344,7 @@ def set_aside_gross_errors(
 
         st, cal = first
         cal.set_aside, cal.screen_skipped = [], test.words()
+        cal.suspects = _gross_errors(st.problem, cal, found)
         step = step_scan(cal, st)
         if step is not None and step.found:
             label = split_label(original, step)
@@ -1327,14 +1358,7 @@ def set_aside_gross_errors(
         problem = make_problem(
             st.problem.nominal, original, cal.effects_nominal, cal.bases, compensated
         )
-        res = weighted_residual(problem, cal.layout, cal.theta)
-        w = np.asarray(problem.weight)
-        out = []
-        for r, c, z in found:
-            value = -float(res[r, c] / w[r, c])
-            value = value if c < 3 else float(np.rad2deg(value))
-            out.append(GrossError(r + 1, POSE_COLUMNS[c], value, z))
-        found = sorted(out, key=lambda g: -abs(g.z))
+        found = _gross_errors(problem, cal, found)
     cal.set_aside = found
     cal.untested = untested
     cal.crowded = crowded
