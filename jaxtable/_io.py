@@ -219,9 +219,9 @@ def read_delimited(
         start = len(raw)
     if comment is not None and _header_in_comment(raw[comment:start], raw[start:]):
         # a header written as a comment over the rows (numpy.savetxt's "# cmd_x,...")
-        start = comment
-        raw = raw[:start] + raw[start:].lstrip().lstrip(b"#").lstrip(b" \t")
-    raw = raw[start:]
+        raw = raw[comment:].lstrip().lstrip(b"#").lstrip(b" \t")
+    else:
+        raw = raw[start:]
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
@@ -231,10 +231,7 @@ def read_delimited(
             f"{path}: {where}: byte 0x{raw[e.start]:02x} is not UTF-8 text "
             "(save the file as UTF-8, e.g. 'CSV UTF-8')"
         ) from None
-    first = text.split("\n", 1)[0]
-    delimiter = ","
-    if "," not in first:
-        delimiter = next((d for d in (";", "\t") if d in first), ",")
+    delimiter = _delimiter(text.split("\n", 1)[0])
     reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
     header = next(reader, None)
     rows = list(reader)
@@ -243,23 +240,32 @@ def read_delimited(
     return header, rows
 
 
+def _delimiter(header: str) -> str:
+    """The file's delimiter from its header line: a comma, or else a semicolon or a tab."""
+    if "," in header:
+        return ","
+    return next((d for d in (";", "\t") if d in header), ",")
+
+
 def _header_in_comment(comment: bytes, rest: bytes) -> bool:
     """Whether the comment line is the header of the rows in `rest`: the first row holds a
-    number (a header names its columns) and as many cells as the comment without its `#`."""
+    number (a header names its columns) and as many cells as the comment without its `#`
+    (each split at the comment's delimiter, `_delimiter`)."""
+    head = comment.split(b"\n", 1)[0].strip().lstrip(b"#").decode("utf-8", "replace")
+    sep = _delimiter(head)
 
-    def cells(line: bytes) -> list:
-        line = line.split(b"\n", 1)[0].strip().lstrip(b"#")
-        return [c.strip() for c in line.replace(b";", b",").replace(b"\t", b",").split(b",")]
+    def cells(line: str) -> list:
+        return [c.strip() for c in line.split(sep)]
 
-    def number(c: bytes) -> bool:
+    def number(c: str) -> bool:
         try:
             float(c)
         except ValueError:
             return False
         return True
 
-    row = cells(rest)
-    return any(number(c) for c in row if c) and len(cells(comment)) == len(row)
+    row = cells(rest.split(b"\n", 1)[0].strip().decode("utf-8", "replace"))
+    return any(number(c) for c in row if c) and len(cells(head)) == len(row)
 
 
 def read_toml(path: Path, error: type[Exception], kind: str) -> dict:

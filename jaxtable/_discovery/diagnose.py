@@ -70,7 +70,7 @@ from .._table import Table
 from .._threads import one_blas_thread
 from .changepoint import SessionSplit, split_label, split_session, step_scan
 from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
-from .gp import ResidualGP, residual_gp
+from .gp import ResidualGP, min_rows, residual_gp
 from .structure import (
     NEIGHBOURS,
     StructureTest,
@@ -1047,10 +1047,10 @@ def diagnose(
     heldout_before = heldout_rms(base_fit, fold_rows, mask, rescale=to_final)
     final_structure = steps[-1].structure if steps[-1].fit is final else test(final)
     residual_model = None
-    if final_structure.structure and flexible and len(st.mask) < 2 * folds:
+    if final_structure.structure and flexible and len(st.mask) < min_rows(folds):
         log(
             "structure remains that nothing named explains; too few stops for a GP residual "
-            f"model ({len(st.mask)}: it needs {2 * folds} for {folds} folds)"
+            f"model ({len(st.mask)}: it needs {min_rows(folds)} for {folds} folds)"
         )
     elif final_structure.structure and flexible:
         log("structure remains that nothing named explains: a GP residual model for hints ...")

@@ -280,12 +280,12 @@ def residual_gp(
         raise ValueError("residual_gp needs a fit with its full Jacobian (diagnose's, or fit())")
     mask_all = np.asarray(st.mask, bool)
     n_all = mask_all.shape[0]
-    if n_all < 2 * folds:
+    if n_all < min_rows(folds):
         raise ValueError(
-            f"residual_gp needs at least {2 * folds} rows for {folds} folds; got {n_all}"
+            f"residual_gp needs at least {min_rows(folds)} rows for {folds} folds; got {n_all}"
         )
-    if max_rows < 2 * folds:
-        raise ValueError(f"max_rows must be at least {2 * folds} for {folds} folds")
+    if max_rows < min_rows(folds):
+        raise ValueError(f"max_rows must be at least {min_rows(folds)} for {folds} folds")
     keep = spread_rows(n_all, max_rows)
     mask = mask_all[keep]
     n = len(keep)
@@ -357,6 +357,11 @@ def residual_gp(
         rows=keep,
         rows_total=n_all,
     )
+
+
+def min_rows(folds: int) -> int:
+    """The fewest stops `residual_gp` models with `folds` held-out folds: two a fold."""
+    return 2 * folds
 
 
 def spread_rows(n: int, m: int) -> np.ndarray:
