@@ -3,6 +3,7 @@ frames and sessions, unidentifiable directions, bad input."""
 
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 
 from jaxtable._calibration.fit import calibrate, validate
 from jaxtable._calibration.instruments import interferometer, point_tracker, tracker6
@@ -322,3 +323,60 @@ def test_fits_of_any_number_of_stops_share_one_compiled_program(table):
     J, r, _ = blocked
     assert J.shape == (900, len(st.names))
     np.testing.assert_allclose(r.reshape(-1, 6)[:, 3:], 0.0)  # angles not measured
+
+
+def test_damped_step_solves_the_trust_region_problem():
+    """The trust region's step (`_TruncatedGram.within`) against its optimality conditions
+    (Moré & Sorensen): (G + μI) p = −g with μ ≥ 0 and |p| = Δ (to the 1 % the fit asks)
+    when the Gauss-Newton step is longer than Δ, else μ = 0 and the Gauss-Newton step.
+    The predicted decrease against |r|² − |r + A p|² computed directly. On unit-norm
+    columns with a dependent column (its direction dropped, g has no component there) and a
+    weak one (σ = 7e-5 of the largest), as the fit scales them."""
+    from jaxtable._calibration.fit import _truncated_step, _TruncatedGram
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((200, 12))
+    A[:, 5] = A[:, 2] - 0.5 * A[:, 7]
+    A[:, 9] = A[:, 3] + 1e-4 * rng.standard_normal(200)
+    A /= np.linalg.norm(A, axis=0)
+    r = rng.standard_normal(200)
+    G, g = A.T @ A, A.T @ r
+    model = _TruncatedGram(G, g, 1e-6)
+    full = np.asarray(_truncated_step(A, r, 1e-6))
+    null = np.linalg.svd(A)[2][-1]  # the dependent columns' direction
+    assert np.linalg.norm(A @ null) < 1e-12
+    p, mu = model.within(1.5 * np.linalg.norm(full))
+    assert mu == 0.0 and np.array_equal(p, full)
+    for frac in (0.9, 0.3, 1e-3):
+        radius = frac * np.linalg.norm(full)
+        p, mu = model.within(radius)
+        assert mu > 0 and abs(np.linalg.norm(p) / radius - 1) < 0.01, (frac, mu)
+        # off the dropped direction n (where a plain solve divides rounding by μ)
+        off = np.eye(12) - np.outer(null, null)
+        expected = off @ -np.linalg.solve(G + mu * np.eye(12), g)
+        np.testing.assert_allclose(off @ p, expected, rtol=1e-6, atol=1e-9)
+        assert abs(null @ p) < 1e-8 * np.linalg.norm(p)  # rounding of the weak direction
+        direct = r @ r - (r + A @ p) @ (r + A @ p)
+        assert model.reduction(p) == pytest.approx(direct, rel=1e-9)
+        # a longer step predicts more decrease, a shorter one less: |p| sits on the boundary
+        assert model.reduction(model.within(0.5 * radius)[0]) < model.reduction(p)
+
+
+def test_gauss_newton_damps_the_steps_where_the_linearisation_fails(table):
+    """8 stops of a 6-D tracker with every geometric parameter free (54 parameters on 48
+    readings and the frame, directions near the truncation level): the undamped
+    Gauss-Newton ran its 200 steps without converging (χ² above 1000 there) before LM took
+    over. With the trust region Gauss-Newton itself converges, to LM's optimum (the
+    independent reference: optimistix's Levenberg-Marquardt on the same problem)."""
+    from jaxtable._calibration.fit import _solve, setup
+
+    true = perturb_table(table, 2)
+    data = simulate(table, true, plan_random(8, 4), tracker6(), seed=2)
+    st = setup(table, data, compensated=True)
+    mask = np.ones(ravel_pytree(st.theta0)[0].shape[0])
+    args = (st.problem, st.layout, st.theta0, mask, 1e-8, 1e-8, 200)
+    _, converged, steps, _, solved, _, r = _solve(*args, "gauss_newton")
+    _, lm_converged, _, _, _, _, r_lm = _solve(*args, "levenberg_marquardt")
+    assert converged and steps < 60 and np.all(solved), steps
+    assert lm_converged
+    assert r @ r == pytest.approx(r_lm @ r_lm, rel=1e-6)

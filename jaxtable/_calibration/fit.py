@@ -325,11 +325,48 @@ def _gram_step(G, g, rcond):
     λ_max ≤ P and the truncation level rcond² λ_max (1e-12 λ_max) stays ~100× above the
     eigenvalues' rounding error (~P ε λ_max). A G or g that is not finite gives a step of
     NaN (the fit then stops there and `_fit_once` falls back to LM), not LAPACK's error."""
-    if not (np.all(np.isfinite(G)) and np.all(np.isfinite(g))):
-        return np.full(np.shape(g), np.nan)
-    lam, V = np.linalg.eigh(G)
-    keep = lam > rcond**2 * lam[-1]
-    return -V @ (np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0) * (V.T @ g))
+    return _TruncatedGram(G, g, rcond).step()
+
+
+class _TruncatedGram:
+    """The truncated Gauss-Newton model at one point (`_gram_step`): G = AᵀA (P, P) and
+    g = Aᵀr (P,) in eigen-coordinates, directions with λ ≤ rcond² λ_max dropped. `step(μ)`
+    is the damped step −(G + μ I)⁺ g on the kept directions (μ = 0: the Gauss-Newton step),
+    `within(Δ)` the step of length at most Δ (the trust region's: the smallest μ that
+    reaches it) and `reduction(p)` the decrease of |r + A p|² the model predicts."""
+
+    def __init__(self, G, g, rcond):
+        self.finite = bool(np.all(np.isfinite(G)) and np.all(np.isfinite(g)))
+        if not self.finite:
+            self.size = np.shape(g)[0]
+            return
+        lam, self.V = np.linalg.eigh(G)
+        self.keep = lam > rcond**2 * lam[-1]
+        self.lam = np.where(self.keep, lam, 1.0)
+        self.c = np.where(self.keep, self.V.T @ g, 0.0)  # g in eigen-coordinates, kept
+
+    def step(self, mu=0.0):
+        if not self.finite:
+            return np.full(self.size, np.nan)
+        return -self.V @ (self.c / (self.lam + mu))
+
+    def within(self, radius):
+        """(step, μ): the Gauss-Newton step where it is no longer than `radius`, else the
+        damped step of length `radius` (to 1 %; Newton's method on 1/|p(μ)|, which is
+        nearly linear in μ, from μ = 0: monotone, a few iterations)."""
+        mu = 0.0
+        for _ in range(50):  # iterations of a scalar equation, not a loop over data
+            d = self.lam + mu
+            norm = np.sqrt(np.sum((self.c / d) ** 2))
+            if norm <= 1.01 * radius:
+                break
+            mu += norm**2 / np.sum(self.c**2 / d**3) * (norm - radius) / radius
+        return self.step(mu), mu
+
+    def reduction(self, p):
+        """|r|² − |r + A p|² = −2 gᵀp − pᵀ G p, from the eigen-coordinates of p."""
+        y = np.where(self.keep, self.V.T @ p, 0.0)
+        return float(-2 * self.c @ y - np.sum(self.lam * y**2))
 
 
 def _truncated_step(A, r, rcond):
@@ -344,41 +381,90 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
     below `rcond` × the largest (frozen, i.e. masked, and unidentifiable directions) get no
     step, so those parameters stay at their start values instead of drifting.
 
-    Each step evaluates the residual and its Jacobian once, in blocks of `FIT_BLOCK` stops
-    (`jacobian_in_chunks`: one compiled program whatever the number of stops, so a file of
-    a new length fits without compiling); the step is a P × P eigen-decomposition of the
-    Gram matrix, formed in numpy (for 900 × 164 in 0.8 ms, where XLA's CPU product took
-    3.6). The start's Jacobian sets D; the last one is the Jacobian at the returned θ (at
-    least one is evaluated, whatever `max_steps`). Stopping rule: optimistix's Cauchy rule
-    for its `GaussNewton`: stop at the evaluated point u_k when max|u_k − u_k−1| / (atol +
-    rtol·|u_k|) < 1 and max|r_k − r_k−1| / (atol + rtol·|r_k|) < 1.
+    Steps are kept within a trust region (Moré's Levenberg-Marquardt: the damped step
+    −(G + μI)⁺g of length Δ, `_TruncatedGram.within`). Δ starts unbounded, so where every
+    Gauss-Newton step lowers χ² = |r|² the fit takes exactly those steps. A step that does
+    not lower χ² (ρ = actual / predicted decrease ≤ 1e-4, unless the predicted decrease
+    and any increase are at the rounding of χ², 1e-10 relative), or leaves a weighted row
+    without a forward solution, is not taken: Δ becomes 0.1–0.5 of its length (where a
+    quadratic through χ² along it has its minimum) and the step is taken again from the
+    same point with the same Jacobian. A taken step with ρ < 0.25 halves Δ; with ρ > 0.75,
+    Δ grows to at least 2 step lengths. On data that barely determine some directions (a
+    6-D tracker on an x line), an undamped step went ~1e5 scaled units along directions
+    just above the truncation level, where the linearisation does not hold (χ² 45,000 →
+    1.5e12), and never came back.
+
+    Each evaluation computes the residual and its Jacobian once, in blocks of `FIT_BLOCK`
+    stops (`jacobian_in_chunks`: one compiled program whatever the number of stops, so a
+    file of a new length fits without compiling); the step is a P × P eigen-decomposition
+    of the Gram matrix, formed in numpy (for 900 × 164 in 0.8 ms, where XLA's CPU product
+    took 3.6). The start's Jacobian sets D; the last one is the Jacobian at the returned θ
+    (at least one is evaluated, whatever `max_steps`; `max_steps` counts evaluations, the
+    steps not taken included). Stopping rule: optimistix's Cauchy rule for its
+    `GaussNewton` on the points taken: stop at u_k when max|u_k − u_k−1| / (atol +
+    rtol·|u_k|) < 1 and max|r_k − r_k−1| / (atol + rtol·|r_k|) < 1; also where a step not
+    taken was itself within the first bound (no smaller step can lower χ² by more than
+    rounding), and at the second point in a row where the Gauss-Newton step predicts a
+    decrease within the rounding of χ² (1e-10 relative). Without that last rule, fits along
+    directions the data barely determine (an x interferometer on a line) took their 200
+    steps at the optimum: the residual's rounding, amplified by 1/σ along those
+    directions, moved them by more than the first bound at every step.
 
     Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ), numpy
     arrays and θ as `theta0`'s pytree."""
     flat0, unravel = ravel_pytree(theta0)
     flat0, mask = np.asarray(flat0), np.asarray(mask, float)
     blocks = _stop_blocks(problem)
+    weighted = np.asarray(problem.weight).any(axis=1)
 
     def evaluate(f):
         J, r, solved = jacobian_in_chunks(problem, layout, theta0, flat=f, blocks=blocks)
-        return J, r, solved, J.T @ J, J.T @ r
+        ok = np.all(np.asarray(solved)[weighted]) and np.all(np.isfinite(r))
+        return J, r, solved, float(r @ r) if ok else np.inf
 
-    f, f_prev, r_prev = flat0, flat0, None
-    k, done, D, r0 = 0, False, None, None
-    while k == 0 or (not done and k < max_steps and np.all(np.isfinite(f))):
-        J, r, solved, G, g = evaluate(f)
-        if k == 0:
-            D, r0, r_prev = _scales(G, mask), r, r
+    def scaled(x):  # parameter values (or differences) in the scaled variables
         on = D > 0
-        u = np.where(on, (f - flat0) / np.where(on, D, 1.0), 0.0)
-        du = np.where(on, (f - f_prev) / np.where(on, D, 1.0), 0.0)
-        small_u = np.max(np.abs(du) / (atol + rtol * np.abs(u)), initial=0.0) < 1
-        small_r = np.max(np.abs(r - r_prev) / (atol + rtol * np.abs(r)), initial=0.0) < 1
-        done = k > 0 and small_u and small_r
-        f_prev, r_prev, k = f, r, k + 1
-        if not done:
-            f = f + D * _gram_step(D[:, None] * G * D[None, :], D * g, rcond)
-    return unravel(jnp.asarray(f_prev)), done, k, J, solved, r0, r
+        return np.where(on, x / np.where(on, D, 1.0), 0.0)
+
+    J, r, solved, chi2 = evaluate(flat0)
+    G = J.T @ J
+    D, r0 = _scales(G, mask), r
+    f, k, done, radius, flat = flat0, 1, False, np.inf, False
+    while not done and k < max_steps:
+        model = _TruncatedGram(D[:, None] * G * D[None, :], D * (J.T @ r), rcond)
+        was_flat, flat = flat, model.reduction(model.step()) <= 1e-10 * chi2
+        if was_flat and flat:  # twice nothing to gain beyond rounding: converged
+            done = True
+            break
+        p, _ = model.within(radius)
+        if not np.all(np.isfinite(p)):
+            break
+        trial = f + D * p
+        J_t, r_t, solved_t, chi2_t = evaluate(trial)
+        k += 1
+        predicted = model.reduction(p)
+        rho = (chi2 - chi2_t) / predicted if predicted > 0 else -np.inf
+        length = np.sqrt(p @ p)
+        small_u = np.max(np.abs(p) / (atol + rtol * np.abs(scaled(trial - flat0))), initial=0.0) < 1
+        # a decrease the model puts at the rounding of χ² (the forward solves' tolerance:
+        # ~1e-11 relative) cannot be tested: such a step is taken, as it would be undamped
+        rounding = max(predicted, chi2_t - chi2) <= 1e-10 * chi2
+        if not (rho > 1e-4 or rounding):  # not taken (also a χ² of inf or NaN)
+            done = small_u
+            slope = -2 * predicted  # ≈ d χ²/dt along p at t = 0 (the model's, for t ≪ 1)
+            curve = chi2_t - chi2 - slope
+            t = -slope / (2 * curve) if np.isfinite(curve) and curve > 0 else 0.1
+            radius = float(np.clip(t, 0.1, 0.5)) * length
+            continue
+        small_r = np.max(np.abs(r_t - r) / (atol + rtol * np.abs(r_t)), initial=0.0) < 1
+        done = small_u and small_r
+        if rho < 0.25:
+            radius = 0.5 * length
+        elif rho > 0.75:
+            radius = max(radius, 2 * length)
+        f, J, r, solved, chi2 = trial, J_t, r_t, solved_t, chi2_t
+        G = J.T @ J
+    return unravel(jnp.asarray(f)), done, k, J, solved, r0, r
 
 
 @jit
@@ -1061,9 +1147,9 @@ def _fit_once(
     args = (problem, layout, theta0, jnp.asarray(fm), rtol, atol, max_steps)
     value, converged, steps, J, solved, r0, r = _solve(*args, method, identifiability_tol)
     if method == "gauss_newton" and not (bool(converged) and np.all(np.asarray(solved)[use])):
-        # undamped steps along weakly determined directions left the region where the
-        # forward kinematics converge (e.g. an x-only instrument on a line): LM's damping
-        # keeps them bounded
+        # the trust region's Gauss-Newton ran out of steps (creeping along a curved valley
+        # of barely determined directions, e.g. an x interferometer on a line): optimistix's
+        # LM from the start, whose damping takes another path
         value, converged, steps, J, solved, r0, r = _solve(
             *args, "levenberg_marquardt", identifiability_tol
         )
