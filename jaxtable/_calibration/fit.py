@@ -452,7 +452,10 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
         k += 1
         predicted = model.reduction(p)
         rho = (chi2 - chi2_t) / predicted if predicted > 0 else -np.inf
-        if not rho > 1e-4 and np.isfinite(chi2_t) and k < max_steps:
+        # a decrease the model puts at the rounding of χ² (the forward solves' tolerance:
+        # ~1e-11 relative) cannot be tested: such a step is taken, as it would be undamped
+        rounding = max(predicted, chi2_t - chi2) <= 1e-10 * chi2
+        if not (rho > 1e-4 or rounding) and np.isfinite(chi2_t) and k < max_steps:
             # geodesic acceleration (Transtrum & Sethna): the residual's second derivative
             # along p from the step just evaluated, r(f + p) = r + J p + r_pp / 2 + ...,
             # bends the step along a curved valley: p + a/2, a = −(G + μI)⁺ Jᵀ r_pp
@@ -469,9 +472,6 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
                     rho = max((chi2 - chi2_t) / predicted, 0.26) if predicted > 0 else 0.26
         length = np.sqrt(p @ p)
         small_u = np.max(np.abs(p) / (atol + rtol * np.abs(scaled(trial - flat0))), initial=0.0) < 1
-        # a decrease the model puts at the rounding of χ² (the forward solves' tolerance:
-        # ~1e-11 relative) cannot be tested: such a step is taken, as it would be undamped
-        rounding = max(predicted, chi2_t - chi2) <= 1e-10 * chi2
         if not (rho > 1e-4 or rounding):  # not taken (also a χ² of inf or NaN)
             done = small_u
             slope = -2 * predicted  # ≈ d χ²/dt along p at t = 0 (the model's, for t ≪ 1)
