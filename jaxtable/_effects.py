@@ -24,7 +24,9 @@ magnitude and `prior` the range a fit or a simulation should stay in, each with 
 cylinders share one screw (signed lead: one lead, one hand), one expansion coefficient and
 one stiffness, and a fit may tie them (`thermal[all]`, one parameter instead of six). The
 other per-leg fields are each cylinder's own: its screw's lead error, periodic error and lost
-motion, its homing.
+motion, its homing. `lead_scale`, `backlash` and `periodic_lead` are defects one cylinder can
+have alone (`one_leg`: a screw from another batch, a worn nut), so a diagnosis also tests each
+of them on one leg (`lead_scale[3]`: leg 3's ε, the other legs' zero).
 """
 
 from collections.abc import Mapping
@@ -56,11 +58,13 @@ class AbstractEffect(eqx.Module):
     "session", "mass"), `typical` and `prior` (field -> magnitude / (lo, hi), with `source`),
     `shared_fields` (per-leg fields that six identical cylinders share — one material, one
     design — so that a fit may tie them to one number for all legs: the effect's shared form,
-    `_params.effect_forms`)."""
+    `_params.effect_forms`), `one_leg` (a defect of one cylinder's own parts that it can
+    have alone, its other legs' fields zero: the effect's one-leg forms, `_params.leg_forms`)."""
 
     name: ClassVar[str] = ""
     fields: ClassVar[tuple] = ()
     shared_fields: ClassVar[tuple] = ()
+    one_leg: ClassVar[bool] = False
     depends_on_extension: ClassVar[bool] = False
     needs: ClassVar[tuple] = ()
     typical: ClassVar[dict] = {}
@@ -112,6 +116,7 @@ class LeadScale(AbstractEffect):
 
     eps: Float[ArrayLike, "6"]
     name: ClassVar[str] = "lead_scale"
+    one_leg: ClassVar[bool] = True  # one screw or nut
     fields: ClassVar[tuple] = ("eps",)
     depends_on_extension: ClassVar[bool] = True
     typical: ClassVar[dict] = {"eps": 8.3e-5}
@@ -134,6 +139,7 @@ class Backlash(AbstractEffect):
 
     w: Float[ArrayLike, "6"]
     name: ClassVar[str] = "backlash"
+    one_leg: ClassVar[bool] = True  # one screw or nut
     fields: ClassVar[tuple] = ("w",)
     typical: ClassVar[dict] = {"w": 0.02}
     prior: ClassVar[dict] = {"w": (0.0, 0.2)}
@@ -156,6 +162,7 @@ class PeriodicLead(AbstractEffect):
     a: Float[ArrayLike, "6"]
     b: Float[ArrayLike, "6"]
     name: ClassVar[str] = "periodic_lead"
+    one_leg: ClassVar[bool] = True  # one screw or nut
     fields: ClassVar[tuple] = ("a", "b")
     depends_on_extension: ClassVar[bool] = True
     typical: ClassVar[dict] = {"a": 0.005, "b": 0.005}

@@ -98,8 +98,15 @@ def split(name: str) -> tuple[str | None, str]:
 
 
 def form_effect(form: str) -> str:
-    """The effect of a form: `thermal[all]` -> `thermal`, `thermal` -> `thermal`."""
-    return leaf(form)
+    """The effect of a form: `thermal[all]` -> `thermal`, `lead_scale[3]` -> `lead_scale`,
+    `thermal` -> `thermal`."""
+    return form.partition("[")[0]
+
+
+def leg_of(form: str) -> int | None:
+    """The leg (1-based) of a one-leg form (`"lead_scale[3]"` -> 3); None for other forms."""
+    index = form.partition("[")[2][:-1]
+    return int(index) if index.isdigit() else None
 
 
 def effect_forms(effect: str) -> tuple[str, ...]:
@@ -110,12 +117,23 @@ def effect_forms(effect: str) -> tuple[str, ...]:
     return (effect, effect + SHARED) if shared else (effect,)
 
 
+def leg_forms(effect: str) -> tuple[str, ...]:
+    """The one-leg forms of an effect one cylinder can have alone (`one_leg`: a defect of
+    its own screw or nut): `("lead_scale[1]", ..., "lead_scale[6]")`, each the effect on that
+    leg with the other legs' fields zero; () for the others."""
+    return tuple(f"{effect}[{i}]" for i in range(1, 7)) if MODEL_EFFECTS[effect].one_leg else ()
+
+
 def effect_parameters(form: str) -> tuple[str, ...]:
     """The parameter names of a library effect form: `("spiral.lead",)`, `("periodic_lead.a",
     "periodic_lead.b")`, ...; a shared form's shared fields with the suffix
-    (`"thermal[all]"` -> `("thermal.alpha[all]",)`)."""
+    (`"thermal[all]"` -> `("thermal.alpha[all]",)`); a one-leg form's element keys
+    (`"periodic_lead[2]"` -> `("periodic_lead.a[2]", "periodic_lead.b[2]")`)."""
     effect = form_effect(form)
     cls = MODEL_EFFECTS[effect]
+    leg = leg_of(form)
+    if leg is not None:
+        return tuple(f"{effect}.{f}[{leg}]" for f in cls.fields)
     tied = cls.shared_fields if is_shared(form) else ()
     return tuple(f"{effect}.{f}" + (SHARED if f in tied else "") for f in cls.fields)
 
@@ -129,14 +147,19 @@ def form_keys(keys, form: str) -> list[str]:
 
 def with_form(model, form: str) -> list:
     """The model (a list of effect forms) with `form` in it, in place of another form of the
-    same effect (a shared form upgraded to per leg)."""
+    same effect (a shared form upgraded to per leg, one-leg forms to per leg); a one-leg form
+    joins the effect's other one-leg forms (`lead_scale[2]` beside `lead_scale[5]`)."""
     effect = form_effect(form)
-    return [m for m in model if form_effect(m) != effect] + [form]
+    beside = leg_of(form) is not None
+    return [m for m in model if form_effect(m) != effect or (beside and leg_of(m))] + [form]
 
 
 def form_label(form: str) -> str:
     """A person's name for an effect form: `thermal[all]` -> `thermal (one alpha for all
-    legs)`; a per-leg form is its name."""
+    legs)`, `lead_scale[3]` -> `lead_scale (leg 3 alone)`; a per-leg form is its name."""
+    leg = leg_of(form)
+    if leg is not None:
+        return f"{form_effect(form)} (leg {leg} alone)"
     if not is_shared(form):
         return form
     effect = form_effect(form)

@@ -74,3 +74,31 @@ def test_calibration_reports_physical_labels(table):
     assert "leg 1 zero length L0" in st.labels
     assert any(s.startswith("base joints: non-rigid mode") for s in st.labels)
     assert "instrument frame (session 1) x" in st.labels
+
+
+def test_one_leg_forms_are_a_cylinder_s_own_defects_on_that_leg_alone():
+    """A defect of one cylinder's screw or nut can be fitted on that leg alone; the effects
+    every cylinder has (the spiral, thermal expansion, compliance) cannot."""
+    assert params.leg_forms("lead_scale") == tuple(f"lead_scale[{i}]" for i in range(1, 7))
+    assert len(params.leg_forms("backlash")) == len(params.leg_forms("periodic_lead")) == 6
+    for effect in ("spiral", "thermal", "compliance", "rehoming"):
+        assert params.leg_forms(effect) == ()
+    assert params.leg_of("lead_scale[3]") == 3
+    assert params.leg_of("thermal[all]") is None and params.leg_of("lead_scale") is None
+    assert params.form_effect("periodic_lead[2]") == "periodic_lead"
+    assert params.effect_parameters("periodic_lead[2]") == (
+        "periodic_lead.a[2]",
+        "periodic_lead.b[2]",
+    )
+    assert params.form_label("backlash[4]") == "backlash (leg 4 alone)"
+    keys = [f"lead_scale.eps[{i}]" for i in range(1, 7)] + ["thermal.alpha[3]"]
+    assert params.form_keys(keys, "lead_scale[3]") == ["lead_scale.eps[3]"]
+    assert params.form_keys(keys, "lead_scale") == keys[:6]
+    # a one-leg form joins the effect's other legs; the per-leg form replaces them all
+    model = ["thermal[all]", "lead_scale[2]"]
+    assert params.with_form(model, "lead_scale[5]") == model + ["lead_scale[5]"]
+    assert params.with_form(model + ["lead_scale[5]"], "lead_scale") == [
+        "thermal[all]",
+        "lead_scale",
+    ]
+    assert params.with_form(model, "thermal") == ["lead_scale[2]", "thermal"]

@@ -23,7 +23,12 @@ Procedure (`diagnose`):
    of σ-normalised residuals of rows the fit did not see; `heldout_rms`). The candidate
    with the lowest ΔBIC among those whose held-out gain exceeds `min_gain` and that
    explain at least `min_share` of the excess χ² (χ² − dof) or leave no structure the
-   structure test can see is added; repeat.
+   structure test can see is added; repeat. An effect with a shared form is offered in
+   both (`thermal[all]`: one coefficient for all legs); a defect one cylinder can have
+   alone (`lead_scale`, `backlash`, `periodic_lead`) also on one leg (`lead_scale[3]`): the
+   best leg of each, by the score test on the fit's linearisation, is fitted as a candidate
+   when its Δχ² could pay, and later legs join it (`lead_scale[2]` beside `lead_scale[5]`)
+   until the per-leg form pays more.
    Beside the library, the discovery dictionary (`dictionary.py`) is screened against the
    same fit: its best term is added instead of the best library effect only when it scores
    `priority` ΔBIC units more (library effects keep priority), beats the dictionary-wide
@@ -167,7 +172,7 @@ class Candidate:
     def as_json(self) -> dict:
         return {
             "effect": params.form_effect(self.effect),
-            "form": self.effect,  # the effect, or `thermal[all]`: one coefficient for all legs
+            "form": self.effect,  # the effect, `thermal[all]` (one for all legs), `lead_scale[3]`
             "delta_bic": self.delta_bic,
             "heldout_gain": self.heldout_gain,
             "heldout_rms": self.heldout_rms,
@@ -183,7 +188,8 @@ class Candidate:
 def _shared_form_of(form: str) -> str | None:
     """The shared form of a per-leg form that has one (`"thermal"` -> `"thermal[all]"`);
     None for a shared form or an effect without one."""
-    forms = () if params.is_shared(form) else params.effect_forms(form)
+    one_form = params.is_shared(form) or params.leg_of(form) is not None
+    forms = () if one_form else params.effect_forms(form)
     return forms[1] if len(forms) > 1 else None
 
 
@@ -415,9 +421,16 @@ class Diagnosis:
         return None
 
     def effect_params(self, name: str) -> dict:
-        """Fitted parameters of a selected effect: field -> (value, std); one value for a
-        field its shared form ties (`selected_forms`)."""
+        """Fitted parameters of a selected effect: field -> (value, std), per leg; one value
+        for a field its shared form ties; the legs of its one-leg forms only, in leg order
+        (`selected_forms`: `lead_scale[2]`, `lead_scale[5]` -> two values, legs 2 and 5)."""
         return {f: self.final.parameter(f"{name}.{f}") for f in EFFECTS[name].fields}
+
+    def form_params(self, form: str) -> dict:
+        """Fitted parameters of one of `selected_forms`: field -> (value, std); one value
+        for a shared field or a one-leg form."""
+        fields = EFFECTS[params.form_effect(form)].fields
+        return dict(zip(fields, map(self.final.parameter, params.effect_parameters(form))))
 
     def as_json(self) -> dict:
         return {
@@ -483,6 +496,24 @@ class Diagnosis:
 def _forms_of(model: list, base) -> list:
     """The library effect forms a model (a list of forms) selected beyond `base`."""
     return [m for m in model if m not in base and m != "discovered"]
+
+
+def _effects_of(forms: list) -> list:
+    """The effects of a list of forms, each once (`lead_scale[2]`, `lead_scale[5]` ->
+    `lead_scale`)."""
+    return list(dict.fromkeys(params.form_effect(m) for m in forms))
+
+
+@dataclass(frozen=True)
+class _Keys:
+    """A one-leg form as the dictionary's screen takes a candidate: its parameter keys."""
+
+    keys: tuple
+
+
+def _on_all_legs(model: list, effect: str) -> bool:
+    """Whether `model` holds `effect` on every leg (per leg or shared)."""
+    return any(params.form_effect(m) == effect and params.leg_of(m) is None for m in model)
 
 
 def _norm_rms(cal: Calibration, rows: np.ndarray, mask: np.ndarray) -> float:
@@ -763,20 +794,56 @@ def diagnose(
         if n not in not_applicable and n not in base
         for form in params.effect_forms(n)
     ]
+    # and the defects one cylinder can have alone on each leg (`lead_scale[3]`), screened on
+    # each step's linearisation: only the best leg of each effect is refitted
+    leg_pool = [
+        form
+        for n in library
+        if n not in not_applicable and n not in base
+        for form in params.leg_forms(n)
+    ]
 
     index = {k: i for i, k in enumerate(st.names)}
     term_keys: list = []  # parameter keys of the dictionary terms found so far
 
     def free_mask(model, keys=None):
         """Geometry, the model's library effects, and the dictionary terms found (`keys`,
-        default those found so far): "discovered" frees only its found elements."""
+        default those found so far): "discovered" frees only its found elements, a one-leg
+        form its leg's."""
+        forms = [form for form in model if form != "discovered"]
         blocks = tuple(
-            f for form in model if form != "discovered" for f in params.effect_parameters(form)
+            f
+            for form in forms
+            if params.leg_of(form) is None
+            for f in params.effect_parameters(form)
         )
         fm = st.free_mask(GEOMETRY + blocks)
-        for k in term_keys if keys is None else keys:
+        legs = [f for form in forms if params.leg_of(form) for f in params.effect_parameters(form)]
+        for k in legs + list(term_keys if keys is None else keys):
             fm[index[k]] = 1.0
         return fm
+
+    def leg_forms_to_fit(model, cal) -> list:
+        """The one-leg forms worth a refit at this step: for each effect the model does not
+        hold on all legs, its leg (not yet in) with the largest Δχ² on the fit's
+        linearisation (the dictionary's score test, exact for an effect linear in its
+        parameters), where that Δχ² reaches half of what ΔBIC asks for (the other half is
+        room for the geometry's curvature)."""
+        offer = [
+            f for f in leg_pool if f not in model and not _on_all_legs(model, params.form_effect(f))
+        ]
+        if not offer:
+            return []
+        keys = [params.effect_parameters(f) for f in offer]
+        dchi2 = screen(cal, st, [_Keys(k) for k in keys], draws=0).delta_chi2
+        out = []
+        for effect in _effects_of(offer):
+            idx = [i for i, f in enumerate(offer) if params.form_effect(f) == effect]
+            best = max(idx, key=lambda i: dchi2[i])
+            need = bic_threshold + len(keys[best]) * math.log(cal.n_obs)
+            if dchi2[best] > 0.5 * need:
+                out.append(offer[best])
+        return out
 
     noise = "estimate" if noise is None else noise
     stated = noise == "fixed"
@@ -831,7 +898,7 @@ def diagnose(
         )
         heldout_current = heldout_rms(current, fold_rows, mask)
         cands = []
-        for name in pool:
+        for name in pool + leg_forms_to_fit(model, current):
             # a form already in, or a shared form where the per-leg one is in: not a step
             # (a shared form in the model is offered its per-leg form, in its place)
             if name in model or (params.is_shared(name) and params.form_effect(name) in model):
@@ -844,7 +911,9 @@ def diagnose(
             )
             dbic = (cal.chi2 - current.chi2) + (cal.rank - current.rank) * math.log(cal.n_obs)
             effect = params.form_effect(name)
-            fitted = {f: cal.parameter(f"{effect}.{f}") for f in EFFECTS[effect].fields}
+            fitted = dict(
+                zip(EFFECTS[effect].fields, map(cal.parameter, params.effect_parameters(name)))
+            )
             h = heldout_rms(cal, fold_rows, mask)
             if dbic >= -bic_threshold and _shared_form_of(name) not in model:
                 cal = cal.light()  # neither added nor an upgrade: only its record is kept
@@ -882,7 +951,7 @@ def diagnose(
         # per-leg form costs five parameters' variance and no bias
         upgrades = [c for c in upgradable if c.equal_legs_p < alpha and c.heldout_gain > 0]
         paying += [c for c in sorted(upgrades, key=lambda c: c.equal_legs_p) if c not in paying]
-        if len(_forms_of(model, base)) >= max_effects:
+        if len(_effects_of(_forms_of(model, base))) >= max_effects:
             have = [params.form_effect(m) for m in model]
             paying = [c for c in paying if params.form_effect(c.effect) in have]  # upgrades
         # the dictionary, screened against the same fit
@@ -925,6 +994,24 @@ def diagnose(
             step.decision = "residuals consistent with the noise: stop"
             break
         lib = paying[0] if paying else None
+        if term is not None and lib is None:
+            # a library effect with strong evidence that pays on held-out rows, if by less
+            # than `min_gain`, keeps its priority over a term the dictionary would add for a
+            # gain above zero (a defect on one leg must not be named the crosstalk that
+            # half-mimics it for want of 1 % held-out gain)
+            lib = next(
+                (
+                    c
+                    for c in strong
+                    if c.heldout_gain > 0
+                    and (
+                        len(_effects_of(_forms_of(model, base))) < max_effects
+                        or params.form_effect(c.effect) in _effects_of(model)
+                    )
+                    and explains(c)
+                ),
+                None,
+            )
         trial = None
         if term is not None:
             cand = live[term]
@@ -1062,14 +1149,14 @@ def diagnose(
         )
     warn_not_physical(final)
     return Diagnosis(
-        selected=[params.form_effect(m) for m in _forms_of(model, base)],
+        selected=_effects_of(_forms_of(model, base)),
         selected_forms=_forms_of(model, base),
         discovered=found,
         absorbed=absorbed,
         ambiguous=ambiguous,
         screenings=screenings,
         discovery_alpha=discovery_alpha,
-        model_effects=[params.form_effect(m) for m in model],
+        model_effects=_effects_of(model),
         noise_mode=noise,
         structure=final_structure,
         unexplained=final_structure.structure,

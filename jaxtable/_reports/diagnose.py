@@ -334,9 +334,10 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         ]
     if diag.selected:
         lines += ["## Fitted effect parameters (final model, ±1σ)", ""]
-        for name, form in zip(diag.selected, diag.selected_forms):
-            lines.append(f"- **{vocab.form_label(form)}**: {_fmt_params(diag.effect_params(name))}")
-            fine = diag.per_leg_candidate(name) if form != name else None
+        for k, form in enumerate(diag.selected_forms):
+            name = vocab.form_effect(form)
+            lines.append(f"- **{vocab.form_label(form)}**: {_fmt_params(diag.form_params(form))}")
+            fine = diag.per_leg_candidate(name) if vocab.is_shared(form) else None
             if fine is not None:  # the ±1σ is the common value's, given equal legs
                 f, (_, s) = next(iter(fine.params.items()))
                 lines.append(
@@ -345,7 +346,8 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
                     f"σ {s.min():.2g}–{s.max():.2g} {vocab.UNITS.get(f, '')}, and a leg can "
                     f"differ from the common value by a few of these σ unseen)"
                 )
-            lines.append(f"  (prior source: {EFFECTS[name].source})")
+            if name not in map(vocab.form_effect, diag.selected_forms[k + 1 :]):
+                lines.append(f"  (prior source: {EFFECTS[name].source})")
         lines.append("")
     lines += ["## Figures", ""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
     return "\n".join(lines)
