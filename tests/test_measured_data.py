@@ -964,13 +964,20 @@ def test_x_readings_alone_fit_every_joint_to_a_converged_physical_table(capsys, 
     free. The undamped Gauss-Newton stepped along directions the data barely determine
     until home lengths left the stroke, and did not converge (`calibrate` refused the
     table). With the trust region the fit converges at the noise (χ²/dof 1), writes a table
-    the table file accepts, and names the combinations the data cannot determine (the
-    joints still move along them: see the README on x readings alone)."""
+    the table file accepts, and names the combinations the data cannot determine; the
+    joints still move along them (see the README on x readings alone), and the report
+    says how many parameters that leaves undetermined and how far the geometry moved."""
     data = Path(__file__).parent / "data" / "x_only_60_stops.csv"
     out = tmp_path / "out"
     assert main(["calibrate", str(data), "--compensated", "--out", str(out)]) == 0
     said = capsys.readouterr().out
     assert "converged: True" in said and "cannot determine" in said, said
+    undetermined = re.search(r"so (\d+) of the (\d+) fitted parameters have σ = inf", said)
+    assert undetermined and int(undetermined[1]) > 30, said
+    change = re.search(
+        r"the largest geometric change: (?:base|platform) joint \d [xyz] ([-+\d.]+) mm", said
+    )
+    assert change and abs(float(change[1])) > 50, said
     chi2, dof = (float(v) for v in re.search(r"chi2/dof = ([\d.]+)/(\d+)", said).groups())
     assert abs(chi2 / dof - 1) < 0.5, said
     jt.check_table(jt.load_table(out / "calibrated_table.toml"))

@@ -656,6 +656,27 @@ class Calibration:
         idx = [i for i, n in enumerate(self.names) if n == prefix or n.startswith(prefix + "[")]
         return self.value[idx], self.std[idx]
 
+    def _undetermined_lines(self) -> list:
+        """What the combinations the data cannot determine do to the fitted values: every
+        parameter with weight on one has σ = inf, and its value is where the fit left it."""
+        inf = np.isinf(self.std)
+        if not inf.any():
+            return []
+        mm = [i for i in np.flatnonzero(inf) if self.names[i].startswith(params.GEOMETRY)]
+        far = max(mm, key=lambda i: abs(self.value[i]), default=None)
+        where = (
+            ""
+            if far is None
+            else f" (the largest geometric change: {params.short_label(self.labels[far])} "
+            f"{self.value[far]:+.4g} mm)"
+        )
+        return [
+            f"so {int(inf.sum())} of the {len(self.std)} fitted parameters have σ = inf: "
+            f"their values are not determined by the data{where}; the fit reproduces these "
+            "readings, but a table fitted along such combinations predicts other poses and "
+            "columns poorly: free fewer parameters, or measure where they act"
+        ]
+
     def report(self) -> str:
         lines = [
             f"converged: {self.converged} ({self.steps} steps); chi2/dof = "
@@ -743,6 +764,7 @@ class Calibration:
                 )
             if len(self.unidentifiable) > 12:
                 lines.append(f"  ... and {len(self.unidentifiable) - 12} more")
+            lines += self._undetermined_lines()
         else:
             lines.append("every fitted parameter is identifiable from these data")
         for k, pitch in enumerate(np.degrees(np.asarray(self.frame)[:, 4])):
