@@ -38,6 +38,7 @@ from discovery_power import (
     first_name,
     named_right,
     nominal_table,
+    planted_effect,
     run,
     scaled,
     truth_of,
@@ -135,9 +136,10 @@ def lasso_verdict(selected, label, truth):
     owners = [column_owner(k) for k in selected]
     if label is None:
         return False, len({(o[0], o[1]) for o in owners})
-    if label in jt.EFFECTS:
-        right = any(o[0] == "library" and o[1] == label for o in owners)
-        wrong = {(o[0], o[1]) for o in owners if not (o[0] == "library" and o[1] == label)}
+    effect = planted_effect(label)
+    if effect:
+        right = any(o[0] == "library" and o[1] == effect for o in owners)
+        wrong = {(o[0], o[1]) for o in owners if not (o[0] == "library" and o[1] == effect)}
         return right, len(wrong)
     family, legs = truth
     ours = [o for o in owners if o[0] == "term" and truth_of_owner(o) == family]
@@ -168,7 +170,7 @@ def one(nominal, label, coef, seed):
     data = run(nominal, true, 100, "6-D tracker", planted, seed)
     diag = jt.diagnose(nominal, data, log=lambda _: None, compensated=False)
     first = first_name(diag)
-    truth = None if label is None or label in jt.EFFECTS else truth_of(TRUTH[label])
+    truth = None if label is None or planted_effect(label) else truth_of(TRUTH[label])
     right = False if label is None else named_right(first, label, truth)
     gain, added = model_gain(diag)
     findings = len(diag.selected) + len(diag.discovered)
@@ -289,7 +291,7 @@ def report(rows, null, run_time, out):
     )
     ok = [k for k, r in ratios.items() if r >= 0.9 and params_ok[k] <= 2.0]
     measured = [k for k, r in ratios.items() if not np.isnan(r)]
-    terms = [k for k in measured if k not in jt.EFFECTS]
+    terms = [k for k in measured if not planted_effect(k)]
     ok_terms = [k for k in ok if k in terms]
     weak = [
         f"{k} (diagnose {100 * mean(rows[k], 'gain'):.1f} %, GP "
@@ -356,7 +358,7 @@ def figure(rows, null, path):
         x = [100 * r["gp_gain"] for r in rs]
         y = [100 * r["gain"] for r in rs]
         top = max(top, *x, *y)
-        ax.plot(x, y, "o" if label in jt.EFFECTS else "^", ms=5, label=label, alpha=0.8)
+        ax.plot(x, y, "o" if planted_effect(label) else "^", ms=5, label=label, alpha=0.8)
     ax.plot(
         [100 * r["gp_gain"] for r in null],
         [100 * r["gain"] for r in null],

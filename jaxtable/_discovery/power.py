@@ -26,7 +26,8 @@ the first round's rules to them:
   (`diagnose`'s priority rule, evaluated on the pair's joint basis); when neither adds to
   the other, the library effect is named and the pair reported ambiguous (`flagged`);
 - a library effect with a shared form (`spiral`, `thermal`, `compliance`: one coefficient for
-  all legs) competes in both forms; either names the effect.
+  all legs) competes in both forms, a cylinder's own defect (`lead_scale`, `backlash`,
+  `periodic_lead`) also on each leg alone (`lead_scale[3]`); any form names the effect.
 
 Not modelled here: the held-out gain checks (`min_gain`, the term's grouped-fold gain), which
 on data of this size bind only at amplitudes where the Δχ² rules already fail, and later
@@ -178,7 +179,8 @@ def detection_power(
     library = list(EFFECTS) if library is None else list(library)
     st = discovery_setup(nominal, data, compensated=compensated)
     effects_ok = [n for n in library if applicable(n, nominal, data)[0]]
-    libs = [form for n in effects_ok for form in params.effect_forms(n)]  # the forms compete
+    # the forms compete: per leg, shared, and a cylinder's own defect on each leg alone
+    libs = [form for n in effects_ok for form in params.effect_forms(n) + params.leg_forms(n)]
     dict_c = candidates(st, data)
     labels = list(planted)
     truth, steps = [], []
