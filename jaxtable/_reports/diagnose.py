@@ -121,7 +121,7 @@ def _signature_of(added: str, sig: dict) -> tuple[str, np.ndarray]:
 
 def effect_figures(diag: Diagnosis, out: Path) -> list[Path]:
     """For each selected effect: leg residuals against its signature before it was added
-    and with the final model."""
+    and with the final model (a one-leg form: that leg's)."""
     paths = []
     sig = signatures(diag)
     after = leg_residuals(diag, diag.final)
@@ -133,18 +133,20 @@ def effect_figures(diag: Diagnosis, out: Path) -> list[Path]:
             continue
         before = leg_residuals(diag, step.fit)
         key, x = _signature_of(step.added, sig)
+        leg = None if step.added.startswith("term ") else vocab.leg_of(step.added)
+        legs = list(range(6)) if leg is None else [leg - 1]
         fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
         for ax, res, title in (
-            (axes[0], before, f"model {' + '.join(step.model)}"),
-            (axes[1], after, f"final model (+ {', '.join(diag.selected)})"),
+            (axes[0], before[:, legs], f"model {' + '.join(step.model)}"),
+            (axes[1], after[:, legs], f"final model (+ {', '.join(diag.selected)})"),
         ):
-            ax.plot(x.reshape(-1), 1e3 * res.reshape(-1), ".", ms=2, color="0.7")
-            c, m, e = _binned(x, res)
+            ax.plot(x[:, legs].reshape(-1), 1e3 * res.reshape(-1), ".", ms=2, color="0.7")
+            c, m, e = _binned(x[:, legs], res)
             ax.errorbar(c, 1e3 * m, 1e3 * e, fmt="o-", color="C3", ms=3)
             ax.axhline(0, color="k", lw=0.5)
             ax.set_xlabel(key)
             ax.set_title(title, fontsize=9)
-        axes[0].set_ylabel("leg residual (µm)")
+        axes[0].set_ylabel("leg residual (µm)" if leg is None else f"leg {leg} residual (µm)")
         fig.suptitle(
             f"{vocab.form_label(step.added)}: leg residuals against its signature, before and after"
         )
