@@ -1022,35 +1022,40 @@ def diagnose(
                 theta0=current.theta,
             )
         if term is not None and lib is not None:
-            # library effects keep priority: the term goes first only when it explains what
-            # the library effect leaves (it still beats the threshold on the library
-            # effect's fit) and the library effect adds nothing once the term is in; when
-            # neither adds to the other the data cannot tell them apart (reported), and
-            # the library effect is named
-            t_left = screen(lib.fit, st, [cand], draws=0).score[0] > scr.threshold
-            both = fit(
-                st,
-                free_mask(params.with_form(model, lib.effect), term_keys + list(cand.keys)),
-                noise="fixed",
-                weight=trial.weight,
-                theta0=trial.theta,
-            )
-            if lib in upgrades:  # the per-leg form by its own test (equal legs rejected)
-                l_left = equal_legs_p(both, trial) < alpha
-            else:
-                l_left = (both.chi2 - trial.chi2) + (both.rank - trial.rank) * math.log(
-                    both.n_obs
-                ) < -bic_threshold
-            log(
-                f"  library {lib.effect} vs term {cand.label}: the term "
-                f"{'adds' if t_left else 'adds nothing'} to {lib.effect}, {lib.effect} "
-                f"{'adds' if l_left else 'adds nothing'} to the term"
-            )
-            if not (t_left and not l_left):
-                if not t_left and not l_left:
-                    ambiguous.append([lib.effect, cand])
-                    log(f"     ambiguous: {lib.effect} (library) / {cand.label}")
-                term = None
+            # library effects keep priority: the term goes first only when, against every
+            # library form that pays (best ΔBIC first), it explains what the library form
+            # leaves (it still beats the threshold on the form's fit) and the form adds
+            # nothing once the term is in; the first form that keeps its priority is named,
+            # and where neither adds to the other the data cannot tell them apart (reported).
+            # Every form, not only the best: a one-leg form that leads by ΔBIC can lose to a
+            # term that the effect's per-leg form would not
+            for rival in [lib] + [c for c in paying if c is not lib]:
+                t_left = screen(rival.fit, st, [cand], draws=0).score[0] > scr.threshold
+                both = fit(
+                    st,
+                    free_mask(params.with_form(model, rival.effect), term_keys + list(cand.keys)),
+                    noise="fixed",
+                    weight=trial.weight,
+                    theta0=trial.theta,
+                )
+                if rival in upgrades:  # the per-leg form by its own test (equal legs rejected)
+                    l_left = equal_legs_p(both, trial) < alpha
+                else:
+                    l_left = (both.chi2 - trial.chi2) + (both.rank - trial.rank) * math.log(
+                        both.n_obs
+                    ) < -bic_threshold
+                log(
+                    f"  library {rival.effect} vs term {cand.label}: the term "
+                    f"{'adds' if t_left else 'adds nothing'} to {rival.effect}, "
+                    f"{rival.effect} {'adds' if l_left else 'adds nothing'} to the term"
+                )
+                if not (t_left and not l_left):
+                    lib = rival
+                    if not t_left and not l_left:
+                        ambiguous.append([lib.effect, cand])
+                        log(f"     ambiguous: {lib.effect} (library) / {cand.label}")
+                    term = None
+                    break
         if term is not None:
             h_old = heldout_rms(current, block_rows, mask, rescale=same_units(current, trial))
             gain = 1.0 - heldout_rms(trial, block_rows, mask) / h_old

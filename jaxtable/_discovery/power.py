@@ -23,7 +23,8 @@ the first round's rules to them:
   terms excluded;
 - when both are accepted the library effect is named, unless the term still beats the
   threshold on top of it and the library effect adds nothing (ΔBIC) on top of the term
-  (`diagnose`'s priority rule, evaluated on the pair's joint basis); when neither adds to
+  (`diagnose`'s priority rule, evaluated on the pair's joint basis), against every library
+  form accepted: the best form that keeps its priority is named; when neither adds to
   the other, the library effect is named and the pair reported ambiguous (`flagged`);
 - a library effect with a shared form (`spiral`, `thermal`, `compliance`: one coefficient for
   all legs) competes in both forms, a cylinder's own defect (`lead_scale`, `backlash`,
@@ -266,21 +267,31 @@ def detection_power(
         out = np.where(any_l, best_l, np.where(any_d, len(libs) + best_d, -1))
         amb = np.full(len(out), -1)
         both = np.flatnonzero(any_l & any_d)
-        pairs = {(int(best_l[i]), int(best_d[i])) for i in both}
-        for li, di in pairs:  # few distinct pairs: the priority rule on their joint basis
-            rows = both[(best_l[both] == li) & (best_d[both] == di)]
+        # the priority rule against every library form that passes (as `diagnose`): the
+        # term goes first only if it does against each; else the best form that keeps
+        # its priority is named
+        keep = np.zeros((len(both), len(libs)), bool)
+        tie = np.zeros((len(both), len(libs)), bool)
+        for li in np.flatnonzero(ok_l[both].any(axis=0)):
             QL = lib_b.Q[:, lib_b.bounds[li] : lib_b.bounds[li + 1]]
-            QD = dict_b.Q[:, dict_b.bounds[di] : dict_b.bounds[di + 1]]
-            QLD = fit_basis(np.concatenate([QL, QD], axis=1), 1e-8)
-            r = res[rows]
-            rr = np.sum(r**2, axis=1)
-            pL, pD, pLD = (np.sum((r @ Q) ** 2, axis=1) for Q in (QL, QD, QLD))
-            sL = (rr - pL) / max(w.dof - QL.shape[1], 1.0)
-            sD = (rr - pD) / max(w.dof - QD.shape[1], 1.0)
-            t_left = (pLD - pL) / sL - k_dict[di] > threshold
-            l_left = (pLD - pD) / sD - lib_b.rank[li] * pen > bic_threshold
-            out[rows] = np.where(t_left & ~l_left, len(libs) + di, li)
-            amb[rows] = np.where(~t_left & ~l_left, di, -1)
+            on = np.flatnonzero(ok_l[both, li])
+            for di in np.unique(best_d[both[on]]):  # few distinct pairs: their joint basis
+                k = on[best_d[both[on]] == di]
+                QD = dict_b.Q[:, dict_b.bounds[di] : dict_b.bounds[di + 1]]
+                QLD = fit_basis(np.concatenate([QL, QD], axis=1), 1e-8)
+                r = res[both[k]]
+                rr = np.sum(r**2, axis=1)
+                pL, pD, pLD = (np.sum((r @ Q) ** 2, axis=1) for Q in (QL, QD, QLD))
+                sL = (rr - pL) / max(w.dof - QL.shape[1], 1.0)
+                sD = (rr - pD) / max(w.dof - QD.shape[1], 1.0)
+                t_left = (pLD - pL) / sL - k_dict[di] > threshold
+                l_left = (pLD - pD) / sD - lib_b.rank[li] * pen > bic_threshold
+                keep[k, li] = ~(t_left & ~l_left)
+                tie[k, li] = ~t_left & ~l_left
+        pick = np.argmax(np.where(keep, pl[both], -np.inf), axis=1)
+        kept = keep.any(axis=1)
+        out[both] = np.where(kept, pick, len(libs) + best_d[both])
+        amb[both] = np.where(kept & tie[np.arange(len(both)), pick], best_d[both], -1)
         return out, amb
 
     shapes, scale = [], []
