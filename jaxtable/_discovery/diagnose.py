@@ -951,9 +951,12 @@ def diagnose(
         # per-leg form costs five parameters' variance and no bias
         upgrades = [c for c in upgradable if c.equal_legs_p < alpha and c.heldout_gain > 0]
         paying += [c for c in sorted(upgrades, key=lambda c: c.equal_legs_p) if c not in paying]
-        if len(_effects_of(_forms_of(model, base))) >= max_effects:
-            have = [params.form_effect(m) for m in model]
-            paying = [c for c in paying if params.form_effect(c.effect) in have]  # upgrades
+
+        def room(c) -> bool:  # below `max_effects`, or a form of an effect already in
+            full = len(_effects_of(_forms_of(model, base))) >= max_effects
+            return not full or params.form_effect(c.effect) in _effects_of(model)
+
+        paying = [c for c in paying if room(c)]
         # the dictionary, screened against the same fit
         scr, term = None, None
         live = [c for c in dict_cands if not set(c.keys) & set(term_keys)]
@@ -1000,16 +1003,7 @@ def diagnose(
             # gain above zero (a defect on one leg must not be named the crosstalk that
             # half-mimics it for want of 1 % held-out gain)
             lib = next(
-                (
-                    c
-                    for c in strong
-                    if c.heldout_gain > 0
-                    and (
-                        len(_effects_of(_forms_of(model, base))) < max_effects
-                        or params.form_effect(c.effect) in _effects_of(model)
-                    )
-                    and explains(c)
-                ),
+                (c for c in strong if c.heldout_gain > 0 and room(c) and explains(c)),
                 None,
             )
         trial = None
