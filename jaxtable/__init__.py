@@ -76,6 +76,7 @@ from ._calibration.poses import (  # noqa: E402
     select_poses,
 )
 from ._calibration.posterior import PosteriorResult, posterior, predictive_bands  # noqa: E402
+from ._calibration.prior import check as prior_check  # noqa: E402
 from ._calibration.simulate import (  # noqa: E402
     perturb_table,
     plan_grid,
@@ -202,6 +203,7 @@ __all__ = [
     "pose_error",
     "reachable",
     "reference_table",
+    "prior_check",
     "replace",
     "rod_rotation",
     "rotation_log",

@@ -210,6 +210,20 @@ def _simulate(args) -> int:
     return 0
 
 
+def _prior(value):
+    """`--prior`: None (no prior), "paper" (the paper's tolerances) or a tolerance file."""
+    from ._analysis.tolerances import Tolerances, load_tolerances
+
+    if value is None:
+        return None
+    if value == "paper":
+        return Tolerances()
+    path = Path(value)
+    if not path.is_file():
+        raise UsageError(f"--prior: '{value}' is neither 'paper' nor a tolerance file")
+    return load_tolerances(path)
+
+
 def _calibrate(args) -> int:
     from ._calibration.fit import check_physical, fit_screened
     from ._calibration.measurements import load_measurements
@@ -221,6 +235,7 @@ def _calibrate(args) -> int:
 
     free = _names(args.free, "--free")
     table = _table(args.table)
+    prior = _prior(args.prior)
     data = load_measurements(args.data)
     print(f"calibrating {', '.join(free)} on {len(data)} rows ...", file=sys.stderr)
     try:
@@ -233,6 +248,7 @@ def _calibrate(args) -> int:
             sigma=_sigma_arg(args.sigma),
             noise=args.noise,
             outliers="keep" if args.keep_outliers else "set_aside",
+            prior=prior,
         )
         check_physical(cal)  # before anything is written
     except ValueError as e:
@@ -663,6 +679,15 @@ def build_parser() -> argparse.ArgumentParser:
     compensation(sp)
     noise_options(sp, "estimate")
     outlier_options(sp)
+    sp.add_argument(
+        "--prior",
+        default=None,
+        metavar="paper|FILE",
+        help="a Gaussian prior on the geometry from a tolerance budget ('paper': the "
+        "paper's; FILE: a tolerance file, as for `map`): the fit is then the maximum a "
+        "posteriori one, what the data cannot determine stays within its tolerance, and the "
+        "report says what the data determine (default: no prior)",
+    )
     sp.add_argument(
         "--mcmc",
         action="store_true",

@@ -98,6 +98,7 @@ BEFORE = [
 ]
 
 ADDED = [
+    "prior_check",
     "DetectionPower",
     "detection_power",
     "DESIGN_CRITERIA",

@@ -120,6 +120,21 @@ def save_tolerances(tol: Tolerances, path) -> None:
     Path(path).write_text("\n".join(lines) + "\n")
 
 
+def parameter_sigma(tol: Tolerances) -> dict:
+    """{model parameter: σ of each of its elements} the budget gives the table as built
+    (model units): joint coordinates, zero lengths (the zero-length σ and the ±w/2
+    clearance offset together, as `sample_hardware` draws a leg's length offset: their
+    variances add), the lead-scale error and the spiral lead. Used as the prior of a
+    calibration (`calibrate(..., prior=tol)`)."""
+    return {
+        "base_joints": tol.sigma("base_joints"),
+        "platform_joints": tol.sigma("platform_joints"),
+        "zero_lengths": float(np.hypot(tol.sigma("zero_length"), tol.sigma("clearance"))),
+        "lead_scale.eps": tol.sigma("lead_error"),
+        "spiral.lead": tol.sigma("spiral_lead"),
+    }
+
+
 def budget_effects(table) -> dict:
     """The effects the propagation differentiates: the hardware spiral term and a zero
     lead-scale error (its derivative is the lead-error sensitivity)."""

@@ -26,6 +26,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 from .. import _params as params
+from .._analysis.tolerances import Tolerances
 from .._api import actuator_command
 from .._batch import _in_pieces, _pad_rows, _pool, _slice_rows, cpu_workers
 from .._context import Context, directions, run_time
@@ -61,6 +62,8 @@ from .noise import (
 from .noise import estimate as noise_estimate
 from .outliers import ALPHA, TRIAL_ROUNDS, GrossError, without
 from .outliers import screen as screen_gross_errors
+from .prior import check as prior_check
+from .prior import weights as prior_weights
 
 JOINTS = params.JOINTS
 COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
@@ -379,7 +382,7 @@ def _truncated_step(A, r, rcond):
     return _gram_step(A.T @ A, A.T @ r, rcond)
 
 
-def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e-6):
+def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e-6, prior=None):
     """Gauss-Newton in Jacobi-scaled variables u (θ = θ0 + D·u, D = `_scales` of the
     Jacobian at θ0) with truncated least-squares steps (`_gram_step`): singular values
     below `rcond` × the largest (frozen, i.e. masked, and unidentifiable directions) get no
@@ -418,28 +421,37 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
     steps at the optimum: the residual's rounding, amplified by 1/σ along those
     directions, moved them by more than the first bound at every step.
 
+    `prior` (P,): 1 / σ of a Gaussian prior N(0, σ²) on each flat parameter (0: none;
+    `prior.weights`), entered as the pseudo-observations prior·f: χ² and the Gram matrix
+    and gradient of every step include them (G + Λ, g + Λ f with Λ = diag(prior²)); J and
+    the residuals returned are the data's. Only free parameters (`mask`) take it.
+
     Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ), numpy
     arrays and θ as `theta0`'s pytree."""
     flat0, unravel = ravel_pytree(theta0)
     flat0, mask = np.asarray(flat0), np.asarray(mask, float)
+    lam = np.zeros_like(mask) if prior is None else (np.asarray(prior, float) * mask) ** 2
     blocks = _stop_blocks(problem)
     weighted = np.asarray(problem.weight).any(axis=1)
 
     def evaluate(f):
         J, r, solved = jacobian_in_chunks(problem, layout, theta0, flat=f, blocks=blocks)
         ok = np.all(np.asarray(solved)[weighted]) and np.all(np.isfinite(r))
-        return J, r, solved, float(r @ r) if ok else np.inf
+        return J, r, solved, float(r @ r + lam @ f**2) if ok else np.inf
+
+    def gram(J):  # the Gauss-Newton model's matrix, the prior's pseudo-observations in it
+        return J.T @ J + np.diag(lam)
 
     def scaled(x):  # parameter values (or differences) in the scaled variables
         on = D > 0
         return np.where(on, x / np.where(on, D, 1.0), 0.0)
 
     J, r, solved, chi2 = evaluate(flat0)
-    G = J.T @ J
+    G = gram(J)
     D, r0 = _scales(G, mask), r
     f, k, done, radius, flat = flat0, 1, False, np.inf, False
     while not done and k < max_steps:
-        model = _TruncatedGram(D[:, None] * G * D[None, :], D * (J.T @ r), rcond)
+        model = _TruncatedGram(D[:, None] * G * D[None, :], D * (J.T @ r + lam * f), rcond)
         was_flat, flat = flat, model.reduction(model.step()) <= 1e-10 * chi2
         if was_flat and flat:  # twice nothing to gain beyond rounding: converged
             done = True
@@ -486,20 +498,22 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
         elif rho > 0.75:
             radius = max(radius, 2 * length)
         f, J, r, solved, chi2 = trial, J_t, r_t, solved_t, chi2_t
-        G = J.T @ J
+        G = gram(J)
     return unravel(jnp.asarray(f)), done, k, J, solved, r0, r
 
 
 @jit
 def _levenberg_marquardt(
-    problem, layout, theta0, D, rtol, atol, max_steps, method="levenberg_marquardt"
+    problem, layout, theta0, D, rtol, atol, max_steps, prior, method="levenberg_marquardt"
 ):
-    """optimistix Levenberg-Marquardt in the scaled variables of `_gauss_newton`. Returns
-    (θ, converged, steps)."""
+    """optimistix Levenberg-Marquardt in the scaled variables of `_gauss_newton`, the
+    prior's pseudo-observations `prior` (P,) · f after the data's residuals (zeros: none).
+    Returns (θ, converged, steps)."""
     flat0, unravel = ravel_pytree(theta0)
 
     def res_scaled(u, _):
-        return residual(unravel(flat0 + D * u), (problem, layout))
+        f = flat0 + D * u
+        return jnp.concatenate([residual(unravel(f), (problem, layout)), prior * f])
 
     sol = optx.least_squares(
         res_scaled,
@@ -513,7 +527,18 @@ def _levenberg_marquardt(
     return value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
 
-def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_newton", rcond=1e-6):
+def _solve(
+    problem,
+    layout,
+    theta0,
+    mask,
+    rtol,
+    atol,
+    max_steps,
+    method="gauss_newton",
+    rcond=1e-6,
+    prior=None,
+):
     """Fit in Jacobi-scaled variables (θ = θ0 + D·mask·u, D = 1 / column norms of the
     Jacobian at θ0): mm, rad and mm/rev parameters then take comparable steps. `mask` (P,)
     (0/1, traced) freezes parameters without recompiling, so nested models and folds of one
@@ -521,13 +546,17 @@ def _solve(problem, layout, theta0, mask, rtol, atol, max_steps, method="gauss_n
     model structure, whatever the number of stops; "levenberg_marquardt": optimistix's LM
     between two Jacobian evaluations (the start's sets D).
 
+    `prior` (P,): 1 / σ of a Gaussian prior on each parameter (`_gauss_newton`).
+
     Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ)."""
     if method == "gauss_newton":
-        return _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond)
+        return _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond, prior)
+    mask = np.asarray(mask, float)
+    w = np.zeros_like(mask) if prior is None else np.asarray(prior, float) * mask
     J0, r0, _ = jacobian_in_chunks(problem, layout, theta0)
-    D = jnp.asarray(_scales(J0.T @ J0, np.asarray(mask, float)))
+    D = jnp.asarray(_scales(J0.T @ J0 + np.diag(w**2), mask))
     value, converged, steps = _levenberg_marquardt(
-        problem, layout, theta0, D, rtol, atol, max_steps
+        problem, layout, theta0, D, rtol, atol, max_steps, jnp.asarray(w)
     )
     J, r, solved = jacobian_in_chunks(problem, layout, value)
     return value, converged, steps, J, solved, r0, r
@@ -634,6 +663,23 @@ class Calibration:
     # where the screen did not run for structure: a step in time within a session that
     # explains it (`_discovery.changepoint.StepInTime`, found), else None
     step: object | None = None
+    # with a prior from the tolerances (`calibrate(..., prior=)`): its σ (P,) for each
+    # fitted parameter (inf: none), and its share of the fit's objective, Σ (θ / σ)²; `std`
+    # and `covariance` are then the posterior's, `chi2` the data's alone
+    prior_sigma: np.ndarray | None = None
+    chi2_prior: float = 0.0
+
+    @property
+    def prior_share(self) -> np.ndarray | None:
+        """(P,) with a prior: (σ / prior σ)² of each fitted parameter, the share of its
+        prior variance left after the data (1: the data say nothing of it, 0: they fix
+        it; NaN where it has no prior); None without a prior."""
+        if self.prior_sigma is None:
+            return None
+        with np.errstate(invalid="ignore"):
+            return np.where(
+                np.isfinite(self.prior_sigma), (self.std / self.prior_sigma) ** 2, np.nan
+            )
 
     def light(self) -> "Calibration":
         """This fit without its arrays of a row per observation and a column per parameter
@@ -676,6 +722,39 @@ class Calibration:
             "readings, but a table fitted along such combinations predicts other poses and "
             "columns poorly: free fewer parameters, or measure where they act"
         ]
+
+    def _prior_lines(self) -> list:
+        """What the prior from the tolerances did: how many parameters it holds, how many
+        the data determine, and whether the fit stayed within the tolerances."""
+        if self.prior_sigma is None:
+            return []
+        on = np.isfinite(self.prior_sigma)
+        share = self.prior_share[on]
+        x, expected, p = prior_check(self.value, self.covariance, self.prior_sigma)
+        idx = np.flatnonzero(on)
+        best = idx[np.argsort(share)[:3]]
+        named = ", ".join(
+            f"{params.short_label(self.labels[i])} σ {self.std[i]:.3g} of {self.prior_sigma[i]:.3g}"
+            for i in best
+            if self.prior_share[i] < 0.5
+        )
+        lines = [
+            f"prior (tolerances): {int(on.sum())} of the {len(on)} fitted parameters held "
+            "within their tolerances around the nominal table; σ are the posterior's: "
+            f"{int(np.sum(share < 0.5))} keep less than half their prior variance (the data "
+            f"determine them{': ' + named if named else ''}), {int(np.sum(share > 0.9))} "
+            "more than 90 % (set by the tolerances, not by the data)",
+            f"prior check: Σ (change / tolerance)² = {x:.3g}, {expected:.3g} expected of a "
+            f"table built to its tolerances (p = {p:.2g})"
+            + (
+                ": the data pull the geometry beyond its tolerances: the table is not built "
+                "to them, or the model lacks an effect the geometry takes up (`jaxtable "
+                "diagnose`)"
+                if p < 0.001
+                else ": within them"
+            ),
+        ]
+        return lines
 
     def report(self) -> str:
         lines = [
@@ -766,7 +845,11 @@ class Calibration:
                 lines.append(f"  ... and {len(self.unidentifiable) - 12} more")
             lines += self._undetermined_lines()
         else:
-            lines.append("every fitted parameter is identifiable from these data")
+            lines.append(
+                "every fitted parameter is identifiable from these data"
+                + (" and the prior" if self.prior_sigma is not None else "")
+            )
+        lines += self._prior_lines()
         for k, pitch in enumerate(np.degrees(np.asarray(self.frame)[:, 4])):
             if abs(abs(pitch) - 90.0) < 1.0:  # the frame's Euler angles at gimbal lock
                 lines.append(
@@ -984,6 +1067,7 @@ class Setup:
     effects: dict
     labels: list = field(default_factory=list)
     noise: NoiseModel | None = None
+    prior: np.ndarray | None = None  # (P,) 1 / σ of the prior on each parameter (`prior.py`)
 
     def free_mask(self, free) -> np.ndarray:
         """(P,) 0/1 over the flat parameters: the blocks named in `free` plus the nuisance
@@ -1006,12 +1090,14 @@ def setup(
     estimate_frame: bool = True,
     sigma: dict | None = None,
     column_ratio: dict | None = None,
+    prior: Tolerances | None = None,
 ) -> Setup:
     """Prepare `data` for fitting the `free` parameters of `nominal` + `effects` (see
     `calibrate`). Every block in `free` gets a θ entry (zero = the start value). `sigma`:
     {column: σ (mm / rad)} stated by the user (overrides the file's σ columns);
     `column_ratio`: the noise groups' parts' σ ratios, fixed (`noise.noise_model`; default
-    None: each fit tests one σ per group)."""
+    None: each fit tests one σ per group); `prior`: tolerances whose σ make a Gaussian
+    prior on the geometry (`jaxtable._calibration.prior`; None: none)."""
     free = params.as_names(free)
     require_measured(data)
     check_units(data)
@@ -1052,7 +1138,8 @@ def setup(
     if target_dofs:
         theta0["target"] = jnp.zeros(len(target_dofs))
     keys, labels = parameter_keys(layout, theta0, bases)
-    return Setup(problem, layout, theta0, keys, mask, eff, labels, noise)
+    w = None if prior is None else prior_weights(keys, prior)
+    return Setup(problem, layout, theta0, keys, mask, eff, labels, noise, w)
 
 
 NOISE = ("estimate", "fixed")
@@ -1190,13 +1277,13 @@ def _fit_once(
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
     args = (problem, layout, theta0, jnp.asarray(fm), rtol, atol, max_steps)
-    value, converged, steps, J, solved, r0, r = _solve(*args, method, identifiability_tol)
+    value, converged, steps, J, solved, r0, r = _solve(*args, method, identifiability_tol, st.prior)
     if method == "gauss_newton" and not (bool(converged) and np.all(np.asarray(solved)[use])):
         # the trust region's Gauss-Newton ran out of steps (creeping along a curved valley
         # of barely determined directions, e.g. an x interferometer on a line): optimistix's
         # LM from the start, whose damping takes another path
         value, converged, steps, J, solved, r0, r = _solve(
-            *args, "levenberg_marquardt", identifiability_tol
+            *args, "levenberg_marquardt", identifiability_tol, st.prior
         )
     if not np.all(np.asarray(solved)[use]):
         bad = np.flatnonzero(~np.asarray(solved) & use)
@@ -1215,10 +1302,16 @@ def _fit_once(
     flat = np.asarray(ravel_pytree(value)[0])[on]
     names = [n for n, k in zip(st.names, on) if k]
     labels = [n for n, k in zip(st.labels or st.names, on) if k]
-    # identifiability: SVD of the column-scaled Jacobian
-    scale = np.linalg.norm(J, axis=0)
+    # identifiability: SVD of the column-scaled Jacobian, below it the prior's
+    # pseudo-observations (one row a parameter with a prior): the covariance is then the
+    # posterior's, and the hat matrix's data rows give the data's redundancy
+    w_prior = np.zeros(on.sum()) if st.prior is None else np.asarray(st.prior, float)[on]
+    has_prior = w_prior > 0
+    A = np.concatenate([J, np.diag(w_prior)[has_prior]])
+    scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
-    U, sv, Vt = np.linalg.svd(J / scale, full_matrices=False)
+    U, sv, Vt = np.linalg.svd(A / scale, full_matrices=False)
+    U = U[: J.shape[0]]  # the data's rows
     ok = sv > identifiability_tol * sv[0]
     unident = []
     for k in np.flatnonzero(~ok):
@@ -1236,6 +1329,9 @@ def _fit_once(
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(np.sqrt(np.diag(cov)), np.sqrt(np.diag(cov)))
     table, effects_fit, frame, target = build_model(problem, layout, value)
+    prior_sigma = None
+    if has_prior.any():
+        prior_sigma = np.where(has_prior, 1.0 / np.where(has_prior, w_prior, 1.0), np.inf)
     cols = [c for k, c in enumerate(COLUMNS) if mask[:, k].any()]
     w_fit = np.asarray(problem.weight)
     on = mask & (w_fit > 0)  # a reading given zero weight (set aside) is not fitted
@@ -1250,6 +1346,10 @@ def _fit_once(
         }
 
     n_obs = int(mask.sum())
+    # the parameters the data determine: the rank, or with a prior the hat matrix's trace
+    # over the data's rows (each direction counts by the share of its information the
+    # data give, between 0 and 1)
+    fitted = int(ok.sum()) if prior_sigma is None else int(round(float(np.sum(U[:, ok] ** 2))))
     return Calibration(
         table=table,
         effects=effects_fit,
@@ -1267,7 +1367,7 @@ def _fit_once(
         rms_before=rms(before),
         rms_after=rms(after),
         chi2=float((after[use] ** 2).sum()),
-        dof=n_obs - int(ok.sum()),
+        dof=n_obs - fitted,
         converged=bool(converged),
         rows_skipped=int((~measured_rows).sum()),
         weight=np.asarray(weight),
@@ -1283,6 +1383,8 @@ def _fit_once(
         jacobian=J,
         jacobian_full=J_full,
         redundancy=red,
+        prior_sigma=prior_sigma,
+        chi2_prior=float(np.sum((w_prior * flat) ** 2)),
     )
 
 
@@ -1303,6 +1405,7 @@ def calibrate(
     max_steps: int = 200,
     method: str = "gauss_newton",
     outliers: str = "set_aside",
+    prior: Tolerances | None = None,
 ) -> "Calibration":
     """Fit the `free` parameters (table leaves: base_joints, platform_joints, zero_lengths,
     ...; effect fields: "spiral.lead", ...; a shared field as one number for all legs:
@@ -1326,6 +1429,13 @@ def calibrate(
     `outliers`: "set_aside" (default: readings the fit cannot reconcile with the rest are
     found by data snooping with a robust scale, set aside as not measured, and the model
     refitted; `Calibration.set_aside` names them; see `outliers`) or "keep".
+    `prior`: a tolerance budget (`Tolerances`, e.g. `jt.Tolerances()` for the paper's, or
+    `jt.load_tolerances(path)`): the table as built is the nominal one within it, a Gaussian
+    prior on the joints, zero lengths, lead-scale error and spiral lead
+    (`tolerances.parameter_sigma`). The fit is then the maximum a posteriori estimate, and
+    `std` / `covariance` the posterior's: what the data cannot determine stays within its
+    tolerance (σ = its prior σ) instead of drifting with σ = inf, and `prior_share` says
+    how much of each parameter's prior variance the data left. Default None: no prior.
     """
     cal = fit_screened(
         nominal,
@@ -1342,6 +1452,7 @@ def calibrate(
         max_steps=max_steps,
         method=method,
         outliers=outliers,
+        prior=prior,
     )[1]
     warn_not_physical(cal)
     return cal
@@ -1412,7 +1523,9 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
     free = params.as_names(free)
     params.check_distinct(free)
     setup_kw = {
-        k: kw.pop(k) for k in ("effects", "compensated", "estimate_frame", "sigma") if k in kw
+        k: kw.pop(k)
+        for k in ("effects", "compensated", "estimate_frame", "sigma", "prior")
+        if k in kw
     }
 
     def run(d):

@@ -16,6 +16,10 @@ the data cannot determine (std = inf in the LM report) are not sampled: they are
 LM values and listed in `PosteriorResult.fixed_directions`; a parameter that takes part in one
 keeps std = inf in the result (its samples are conditional on the fixed combination).
 
+A set-up with a prior from the tolerances (`setup(..., prior=)`) adds its term,
+−½ Σ (θᵢ / σᵢ)², to the log-probability: the sampled posterior is the one the MAP fit
+approximates.
+
 Prior. `prior_scale = s` (default 100): a Gaussian N(0, s²) on each whitened coordinate, i.e.
 N(θ_LM, s² Σ_LM) on the identifiable subspace: proper, and 100 times wider than the
 likelihood, so it changes posterior standard deviations by a factor 1/√(1 + 1/s²) (5e-5 for
@@ -132,14 +136,17 @@ def _whitening(cal: Calibration):
 
 
 @jit
-def _log_prob_batch(z, problem, layout, template, center, L, inv_prior_var):
-    """Log-posterior (W,) of W walkers z (W, r): one vmapped residual evaluation."""
+def _log_prob_batch(z, problem, layout, template, center, L, inv_prior_var, tolerance_w):
+    """Log-posterior (W,) of W walkers z (W, r): one vmapped residual evaluation.
+    `tolerance_w` (P,): 1 / σ of the set-up's prior from the tolerances (`Setup.prior`;
+    zeros: none)."""
     _, unravel = ravel_pytree(template)
 
     def one(zi):
-        theta = unravel(center + L @ zi)
-        r = residual(theta, (problem, layout))
+        flat = center + L @ zi
+        r = residual(unravel(flat), (problem, layout))
         lp = -0.5 * jnp.sum(r**2) - 0.5 * inv_prior_var * jnp.sum(zi**2)
+        lp = lp - 0.5 * jnp.sum((tolerance_w * flat) ** 2)
         return jnp.where(jnp.isfinite(lp), lp, -jnp.inf)
 
     return jax.vmap(one)(z)
@@ -223,6 +230,7 @@ def posterior(
         flat_lm,
         jnp.asarray(L),
         jnp.asarray(0.0 if prior_scale is None else 1.0 / prior_scale**2),
+        jnp.asarray(np.zeros(flat_lm.shape[0]) if st.prior is None else st.prior),
     )
 
     def log_prob(z):
