@@ -325,6 +325,62 @@ def test_fits_of_any_number_of_stops_share_one_compiled_program(table):
     np.testing.assert_allclose(r.reshape(-1, 6)[:, 3:], 0.0)  # angles not measured
 
 
+def test_fits_of_other_parameters_and_instruments_share_one_compiled_jacobian(table):
+    """One model structure (the spiral term, one session) compiles the fit's block Jacobian
+    once, whatever the fit frees and the instrument reads: the geometry seen by a 6-D
+    tracker (joint sets gauged, every frame and target DOF), by a point tracker (the
+    target's position only) and by an x interferometer (three frame DOFs, no gauge), the
+    geometry with the lead per leg and as one number for all legs, the zero lengths alone;
+    and a fit runs on it. The Jacobians of the layouts agree as the parameters are related:
+    a gauged joint set's columns are the plain coordinates' columns times its basis, the
+    shared lead's column the sum of the six per-leg leads' columns."""
+    from conftest import compiled_programs
+
+    from jaxtable._calibration.fit import jacobian_in_chunks, setup
+    from jaxtable._params import GEOMETRY
+
+    true = perturb_table(table, 5)
+    poses = plan_random(30, 5)
+    readers = {"tracker": tracker6(), "point": point_tracker(), "x": interferometer()}
+    data = {k: simulate(table, true, poses, inst, seed=1) for k, inst in readers.items()}
+    per_leg = GEOMETRY + ("spiral.lead",)
+    with compiled_programs() as compiles:
+        st = {
+            "gauged": setup(table, data["tracker"], per_leg),
+            "plain": setup(table, data["tracker"], per_leg, estimate_frame=False),
+            "shared": setup(table, data["tracker"], GEOMETRY + ("spiral.lead[all]",)),
+            "point": setup(table, data["point"], GEOMETRY),
+            "x": setup(table, data["x"], GEOMETRY),
+        }
+        assert st["gauged"].layout.gauge == ("base_joints", "platform_joints")
+        assert st["point"].layout.target_dofs == (0, 1, 2)
+        assert st["x"].layout.frame_dofs == (0, 4, 5) and not st["x"].layout.gauge
+        J = {}
+        for k, s in st.items():
+            theta = dict(s.theta0)  # every layout at the same model: frame and target at 0
+            theta.update({n: 0 * theta[n] for n in ("frame", "target") if n in theta})
+            J[k] = jacobian_in_chunks(s.problem, s.layout, theta)[0]
+            assert J[k].shape == (180, len(s.names)) and np.all(np.isfinite(J[k])), k
+        cal = calibrate(table, data["x"], ("zero_lengths",))
+        assert cal.converged
+    assert compiles.count("jit(_block_jacobian)") <= 1, compiles
+
+    def columns(k, prefix):
+        return J[k][:, [i for i, n in enumerate(st[k].names) if n.startswith(prefix)]]
+
+    for joints in ("base_joints", "platform_joints"):
+        basis = np.asarray(st["gauged"].problem.bases[joints])  # (18, 12)
+        np.testing.assert_allclose(
+            columns("gauged", joints), columns("plain", joints) @ basis, rtol=0, atol=1e-12
+        )
+    np.testing.assert_allclose(
+        columns("shared", "spiral.lead[all]")[:, 0],
+        columns("gauged", "spiral.lead").sum(axis=1),
+        rtol=0,
+        atol=1e-12,
+    )
+
+
 def test_damped_step_solves_the_trust_region_problem():
     """The trust region's step (`_TruncatedGram.within`) against its optimality conditions
     (Moré & Sorensen): (G + μI) p = −g with μ ≥ 0 and |p| = Δ (to the 1 % the fit asks)

@@ -187,20 +187,118 @@ of 96 or 128, 52 in blocks of 32 and 111 in blocks of 16 (a call costs ~1.2 ms h
 small). The last block is padded: a 150-stop fit evaluates 192 stops, a 14-stop fit 64."""
 
 
+@dataclass(frozen=True)
+class _Canonical:
+    """The block programs' view of a fit's parameters (`_canonical`): every fit of one model
+    structure (effects present, sessions, other table leaves freed) runs one compiled block
+    program, whatever it frees, which instrument columns it reads (frame and target DOFs) and
+    whether its joint sets are gauged.
+
+    `layout`: the canonical layout: the geometry (and any other freed table leaf), every
+    field of every effect in the model per element, all six frame DOFs of every session and
+    of the target, no gauge (joint steps in plain coordinates). `template`: the canonical θ
+    at zero (its ravel order is the programs'). `embed` (P_c, P): f_c = embed @ f maps a
+    fit's flat parameters f (laid out as its θ) onto the canonical ones; `build_model` is
+    linear in θ, so the model is the same, and the fit's Jacobian is J_c @ embed: a gauged
+    joint set's columns are its basis, a shared field's (`thermal.alpha[all]`) ones on every
+    leg's element, a frame or target DOF the one it sets."""
+
+    layout: Layout
+    template: dict
+    embed: np.ndarray
+
+    def unravel(self, flat) -> dict:
+        """The canonical θ (a dict of jax arrays) of the flat canonical parameters `flat`,
+        sliced in numpy (an eager `ravel_pytree` unravel compiles a slice per shape)."""
+        out, at = {}, 0
+        for key in sorted(self.template):
+            shape = np.shape(self.template[key])
+            n = int(np.prod(shape))
+            out[key] = jnp.asarray(np.reshape(flat[at : at + n], shape))
+            at += n
+        return out
+
+
+def _canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
+    """The canonical parameters of a fit laid out as `layout` and `theta` (see `_Canonical`),
+    kept for the fit's later steps (a fit asks at every evaluation)."""
+    bases = tuple(np.asarray(problem.bases[n]) for n in JOINTS)
+    key = (
+        layout,
+        tuple((k, np.shape(v)) for k, v in sorted(theta.items())),
+        tuple(
+            (e, jax.tree.structure(v), tuple(np.shape(x) for x in jax.tree.leaves(v)))
+            for e, v in sorted(problem.effects.items())
+        ),
+        tuple((b.shape, b.tobytes()) for b in bases),
+    )
+    found = _CANONICAL.get(key)
+    if found is None:
+        found = _CANONICAL[key] = _make_canonical(problem, layout, theta)
+        while len(_CANONICAL) > 64:
+            _CANONICAL.pop(next(iter(_CANONICAL)))
+    return found
+
+
+_CANONICAL: dict = {}
+
+
+def _make_canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
+    extra = tuple(n for n in params.TABLE_LEAVES if n in layout.free and n not in params.GEOMETRY)
+    fields = tuple(
+        f"{e}.{f}" for e in sorted(problem.effects) for f in type(problem.effects[e]).fields
+    )
+    lay = Layout(
+        params.GEOMETRY + extra + fields, tuple(range(6)), tuple(range(6)), layout.n_sessions, ()
+    )
+    template = {  # a joint set's step in plain coordinates (18,), as `build_model` takes it
+        n: np.zeros(18 if n in JOINTS else np.shape(params.get(problem.start, problem.effects, n)))
+        for n in lay.free
+    }
+    template["frame"] = np.zeros((layout.n_sessions, 6))
+    template["target"] = np.zeros(6)
+    start, at = {}, 0
+    for key in sorted(template):  # `ravel_pytree` order: dict keys sorted
+        start[key] = at
+        at += template[key].size
+    sizes = {k: int(np.asarray(v).size) for k, v in theta.items()}
+    embed = np.zeros((at, sum(sizes.values())))
+    j = 0
+    for key in sorted(theta):  # blocks of parameters, not data
+        n, c = sizes[key], start.get(params.leaf(key), 0)
+        if key in params.JOINTS:
+            embed[c : c + 18, j : j + n] = np.asarray(problem.bases[key])
+        elif key in ("frame", "target"):
+            dofs = layout.frame_dofs if key == "frame" else layout.target_dofs
+            rows = np.add.outer(6 * np.arange(n // max(len(dofs), 1)), dofs).reshape(-1)
+            embed[c + rows, j + np.arange(n)] = 1.0
+        elif params.is_shared(key):
+            embed[c : c + template[params.leaf(key)].size, j] = 1.0
+        else:
+            embed[c : c + n, j : j + n] = np.eye(n)
+        j += n
+    return _Canonical(lay, jax.tree.map(jnp.asarray, template), embed)
+
+
+_PLAIN_BASES = {n: np.eye(18) for n in JOINTS}
+
+
 def _stop_blocks(problem: Problem, rows: int = FIT_BLOCK) -> list:
-    """`problem` cut into blocks of `rows` stops: [(block problem, stops used)], the last
-    block padded by repeating its last stop with zero weight (so it adds nothing to a sum
-    over rows). The per-stop arrays are sliced in numpy (indexing jax arrays eagerly compiles
-    a gather for every shape)."""
+    """`problem` cut into blocks of `rows` stops for the block programs: [(block problem,
+    stops used)], the last block padded by repeating its last stop with zero weight (so it
+    adds nothing to a sum over rows), the joint bases plain (the programs take canonical
+    parameters, `_canonical`). The per-stop arrays are sliced in numpy (indexing jax arrays
+    eagerly compiles a gather for every shape)."""
     n = problem.s.shape[0]
     per_stop = jax.tree.map(np.asarray, _rows(problem))
+    plain = eqx.tree_at(lambda p: p.bases, problem, jax.tree.map(jnp.asarray, _PLAIN_BASES))
     blocks = []
     for start in range(0, n, rows):  # blocks of a batch, not a loop over poses
         k = min(rows, n - start)
         chunk = list(_pad_rows(_slice_rows(per_stop, start, start + rows), rows))
         chunk[5] = np.where(np.arange(rows)[:, None] < k, chunk[5], 0.0)  # the weight
         chunk = jax.tree.map(jnp.asarray, tuple(chunk))
-        blocks.append((eqx.tree_at(_rows, problem, chunk), k))
+        blocks.append((eqx.tree_at(_rows, plain, chunk), k))
     return blocks
 
 
@@ -231,10 +329,12 @@ residual_jit = jit(residual)
 
 def weighted_residual(problem: Problem, layout: Layout, theta) -> np.ndarray:
     """(reading − measured) / σ per cell (N, 6) at θ, 0 where not measured: `residual_jit`
-    in blocks of `FIT_BLOCK` stops (one compiled program per model structure, whatever the
-    number of stops)."""
+    in blocks of `FIT_BLOCK` stops on the canonical parameters (`_canonical`: one compiled
+    program per model structure, whatever the number of stops and the parameters freed)."""
+    can = _canonical(problem, layout, theta)
+    theta_c = can.unravel(can.embed @ np.asarray(ravel_pytree(theta)[0]))
     blocks = _stop_blocks(problem)
-    parts = _in_blocks(blocks, lambda b: residual_jit(theta, (b, layout)))
+    parts = _in_blocks(blocks, lambda b: residual_jit(theta_c, (b, can.layout)))
     return _joined(parts, blocks, 6).reshape(-1, 6)
 
 
@@ -274,17 +374,21 @@ def jacobian_in_chunks(
 ):
     """(J (N·6, P), residual (N·6,), solved (N,)) at θ, numpy: the weighted residual's
     Jacobian on the flat parameters (`_residual_and_jacobian`), evaluated in blocks of
-    `rows` stops with the fit's block program (`_block_jacobian`): one compiled program
-    whatever the number of stops, the same one the fits of this model structure run (a file
-    of a new length fits without compiling; pose selection and the discrimination plan,
-    whose candidate poses change in number from call to call, share it). `flat` (P,): the
-    parameters as a flat vector laid out as `theta` (default θ itself); `blocks`:
-    `_stop_blocks(problem, rows)` when the caller has them (a fit evaluates each step on
-    the same blocks)."""
-    flat = jnp.asarray(ravel_pytree(theta)[0] if flat is None else flat)
+    `rows` stops with the fit's block program (`_block_jacobian`) on the canonical
+    parameters (`_canonical`), then J = J_c @ embed: one compiled program per model
+    structure, whatever the number of stops and whatever the fit frees, the instrument reads
+    or the gauge: a file of a new length, a fit of another parameter set or instrument,
+    pose selection and the discrimination plan (whose candidate poses change in number from
+    call to call) share it. `flat` (P,): the parameters as a flat vector laid out as `theta`
+    (default θ itself); `blocks`: `_stop_blocks(problem, rows)` when the caller has them
+    (a fit evaluates each step on the same blocks)."""
+    flat = np.asarray(ravel_pytree(theta)[0] if flat is None else flat)
+    can = _canonical(problem, layout, theta)
+    flat_c = jnp.asarray(can.embed @ flat)
     blocks = _stop_blocks(problem, rows) if blocks is None else blocks
-    out = _in_blocks(blocks, lambda b: _block_jacobian(b, layout, theta, flat))
-    return tuple(_joined([o[i] for o in out], blocks, m) for i, m in ((0, 6), (1, 6), (2, 1)))
+    out = _in_blocks(blocks, lambda b: _block_jacobian(b, can.layout, can.template, flat_c))
+    J_c, r, solved = (_joined([o[i] for o in out], blocks, m) for i, m in ((0, 6), (1, 6), (2, 1)))
+    return J_c @ can.embed, r, solved
 
 
 POOL_BLOCKS = 8
