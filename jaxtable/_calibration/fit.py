@@ -190,13 +190,14 @@ small). The last block is padded: a 150-stop fit evaluates 192 stops, a 14-stop 
 @dataclass(frozen=True)
 class _Canonical:
     """The block programs' view of a fit's parameters (`_canonical`): every fit of one model
-    structure (effects present, sessions, other table leaves freed) runs one compiled block
-    program, whatever it frees, which instrument columns it reads (frame and target DOFs) and
-    whether its joint sets are gauged.
+    structure (effects present, sessions up to a power of two, other table leaves freed)
+    runs one compiled block program, whatever it frees, which instrument columns it reads
+    (frame and target DOFs) and whether its joint sets are gauged.
 
     `layout`: the canonical layout: the geometry (and any other freed table leaf), every
-    field of every effect in the model per element, all six frame DOFs of every session and
-    of the target, no gauge (joint steps in plain coordinates). `template`: the canonical θ
+    field of every effect in the model per element, all six frame DOFs of every session
+    (sessions rounded up to a power of two, at least 2) and of the target, no gauge (joint
+    steps in plain coordinates). `template`: the canonical θ
     at zero (its ravel order is the programs'). `embed` (P_c, P): f_c = embed @ f maps a
     fit's flat parameters f (laid out as its θ) onto the canonical ones; `build_model` is
     linear in θ, so the model is the same, and the fit's Jacobian is J_c @ embed: a gauged
@@ -248,14 +249,15 @@ def _make_canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
     fields = tuple(
         f"{e}.{f}" for e in sorted(problem.effects) for f in type(problem.effects[e]).fields
     )
-    lay = Layout(
-        params.GEOMETRY + extra + fields, tuple(range(6)), tuple(range(6)), layout.n_sessions, ()
-    )
+    # frames for a power of two of sessions (at least 2): a file of one session and one of
+    # two share the program (the frames no row reads have zero columns)
+    sessions = max(2, 1 << (layout.n_sessions - 1).bit_length())
+    lay = Layout(params.GEOMETRY + extra + fields, tuple(range(6)), tuple(range(6)), sessions, ())
     template = {  # a joint set's step in plain coordinates (18,), as `build_model` takes it
         n: np.zeros(18 if n in JOINTS else np.shape(params.get(problem.start, problem.effects, n)))
         for n in lay.free
     }
-    template["frame"] = np.zeros((layout.n_sessions, 6))
+    template["frame"] = np.zeros((sessions, 6))
     template["target"] = np.zeros(6)
     start, at = {}, 0
     for key in sorted(template):  # `ravel_pytree` order: dict keys sorted
