@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import compiled_programs
 from scipy.stats import binom, chi2, kstest
 
 import jaxtable as jt
@@ -153,7 +154,8 @@ def test_diagnose_splits_the_session_and_finds_the_model_of_the_whole_file(tmp_p
     (150 stops, temperature rising over the run): with one session the diagnosis added
     thermal (the step looks like a drift in time) and left structure unexplained; with the
     step found it diagnoses the rows after it as a session of their own and selects the
-    spiral alone, no structure left, the held-out RMS lower; the JSON names the split."""
+    spiral alone, no structure left, the held-out RMS lower; the JSON names the split. The
+    two diagnoses share one compiled fit program."""
     table = jt.reference_table()
     rng = np.random.default_rng(7)
     true = jt.perturb_table(table, 7, joint_sigma=0.010, zero_sigma=0.050)
@@ -184,7 +186,10 @@ def test_diagnose_splits_the_session_and_finds_the_model_of_the_whole_file(tmp_p
         temperature=temperature,
     )
     lines = []
-    diag = jt.diagnose(table, data, log=lines.append, flexible=False, discover=False)
+    with compiled_programs() as compiles:
+        diag = jt.diagnose(table, data, log=lines.append, flexible=False, discover=False)
+    # the diagnosis again with two sessions runs the one-session diagnosis's fit program
+    assert compiles.count("jit(_block_jacobian)") <= 1, compiles
     assert any("diagnosing again with rows 91… of session 1 as session '1@91'" in x for x in lines)
     assert [s.step.row for s in diag.split_sessions] == [91]
     split = diag.split_sessions[0]

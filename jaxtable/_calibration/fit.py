@@ -196,13 +196,14 @@ class _Canonical:
 
     `layout`: the canonical layout: the geometry (and any other freed table leaf), every
     field of every effect in the model per element, all six frame DOFs of every session
-    (sessions rounded up to a power of two, at least 2) and of the target, no gauge (joint
-    steps in plain coordinates). `template`: the canonical θ
-    at zero (its ravel order is the programs'). `embed` (P_c, P): f_c = embed @ f maps a
-    fit's flat parameters f (laid out as its θ) onto the canonical ones; `build_model` is
-    linear in θ, so the model is the same, and the fit's Jacobian is J_c @ embed: a gauged
-    joint set's columns are its basis, a shared field's (`thermal.alpha[all]`) ones on every
-    leg's element, a frame or target DOF the one it sets."""
+    and of the target, no gauge (joint steps in plain coordinates); frames and per-session
+    effect rows for `canonical_sessions` sessions (a power of two, at least 2). `template`:
+    the canonical θ at zero (its ravel order is the programs'). `embed` (P_c, P): f_c =
+    embed @ f maps a fit's flat parameters f (laid out as its θ) onto the canonical ones;
+    `build_model` is linear in θ, so the model is the same, and the fit's Jacobian is
+    J_c @ embed: a gauged joint set's columns are its basis, a shared field's
+    (`thermal.alpha[all]`) ones on every leg's element, a frame or target DOF the one it
+    sets."""
 
     layout: Layout
     template: dict
@@ -249,12 +250,11 @@ def _make_canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
     fields = tuple(
         f"{e}.{f}" for e in sorted(problem.effects) for f in type(problem.effects[e]).fields
     )
-    # frames for a power of two of sessions (at least 2): a file of one session and one of
-    # two share the program (the frames no row reads have zero columns)
-    sessions = max(2, 1 << (layout.n_sessions - 1).bit_length())
+    sessions = canonical_sessions(layout.n_sessions)
+    effects = _padded_effects(problem.effects, layout.n_sessions)
     lay = Layout(params.GEOMETRY + extra + fields, tuple(range(6)), tuple(range(6)), sessions, ())
     template = {  # a joint set's step in plain coordinates (18,), as `build_model` takes it
-        n: np.zeros(18 if n in JOINTS else np.shape(params.get(problem.start, problem.effects, n)))
+        n: np.zeros(18 if n in JOINTS else np.shape(params.get(problem.start, effects, n)))
         for n in lay.free
     }
     template["frame"] = np.zeros((sessions, 6))
@@ -285,15 +285,61 @@ def _make_canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
 _PLAIN_BASES = {n: np.eye(18) for n in JOINTS}
 
 
-def _stop_blocks(problem: Problem, rows: int = FIT_BLOCK) -> list:
+def canonical_sessions(n_sessions: int) -> int:
+    """Sessions the block programs hold frames (and per-session effect rows) for: a power
+    of two, at least 2, so that files of one and two sessions, and a file whose session a
+    step in time split in two, share the program (rows no stop reads add nothing)."""
+    return max(2, 1 << (n_sessions - 1).bit_length())
+
+
+def _padded_effects(effects: dict, n_sessions: int) -> dict:
+    """`effects` with their per-session fields (one row per later session: `rehoming`'s
+    offsets, the discovered `session*s` terms; the fields whose shape `null` sets by the
+    number of sessions) padded with zero rows to `canonical_sessions(n_sessions)`. The
+    effects read the row of a stop's session, so rows beyond the data's sessions are never
+    read."""
+    target = canonical_sessions(n_sessions)
+    out = {}
+    for name, e in effects.items():
+        cls = type(e)
+        try:
+            have, want = cls.null(n_sessions), cls.null(target)
+        except Exception:  # an effect without a per-session null: nothing to pad
+            out[name] = e
+            continue
+        grow = [
+            f
+            for f in cls.fields
+            if np.shape(getattr(have, f)) != np.shape(getattr(want, f))
+            and np.shape(getattr(e, f)) == np.shape(getattr(have, f))
+        ]
+        if grow:
+            padded = []
+            for f in grow:
+                v = np.asarray(getattr(e, f))
+                extra = np.shape(getattr(want, f))[0] - v.shape[0]
+                padded.append(jnp.asarray(np.concatenate([v, np.zeros((extra,) + v.shape[1:])])))
+            e = eqx.tree_at(lambda m: [getattr(m, f) for f in grow], e, padded)
+        out[name] = e
+    return out
+
+
+def _stop_blocks(problem: Problem, layout: Layout, rows: int = FIT_BLOCK) -> list:
     """`problem` cut into blocks of `rows` stops for the block programs: [(block problem,
     stops used)], the last block padded by repeating its last stop with zero weight (so it
-    adds nothing to a sum over rows), the joint bases plain (the programs take canonical
-    parameters, `_canonical`). The per-stop arrays are sliced in numpy (indexing jax arrays
-    eagerly compiles a gather for every shape)."""
+    adds nothing to a sum over rows), the joint bases plain and the per-session effect rows
+    padded (the programs take canonical parameters, `_canonical`). The per-stop arrays are
+    sliced in numpy (indexing jax arrays eagerly compiles a gather for every shape)."""
     n = problem.s.shape[0]
     per_stop = jax.tree.map(np.asarray, _rows(problem))
-    plain = eqx.tree_at(lambda p: p.bases, problem, jax.tree.map(jnp.asarray, _PLAIN_BASES))
+    plain = eqx.tree_at(
+        lambda p: (p.bases, p.effects),
+        problem,
+        (
+            jax.tree.map(jnp.asarray, _PLAIN_BASES),
+            _padded_effects(problem.effects, layout.n_sessions),
+        ),
+    )
     blocks = []
     for start in range(0, n, rows):  # blocks of a batch, not a loop over poses
         k = min(rows, n - start)
@@ -335,7 +381,7 @@ def weighted_residual(problem: Problem, layout: Layout, theta) -> np.ndarray:
     program per model structure, whatever the number of stops and the parameters freed)."""
     can = _canonical(problem, layout, theta)
     theta_c = can.unravel(can.embed @ np.asarray(ravel_pytree(theta)[0]))
-    blocks = _stop_blocks(problem)
+    blocks = _stop_blocks(problem, layout)
     parts = _in_blocks(blocks, lambda b: residual_jit(theta_c, (b, can.layout)))
     return _joined(parts, blocks, 6).reshape(-1, 6)
 
@@ -382,12 +428,12 @@ def jacobian_in_chunks(
     or the gauge: a file of a new length, a fit of another parameter set or instrument,
     pose selection and the discrimination plan (whose candidate poses change in number from
     call to call) share it. `flat` (P,): the parameters as a flat vector laid out as `theta`
-    (default θ itself); `blocks`: `_stop_blocks(problem, rows)` when the caller has them
+    (default θ itself); `blocks`: `_stop_blocks(problem, layout, rows)` when the caller has them
     (a fit evaluates each step on the same blocks)."""
     flat = np.asarray(ravel_pytree(theta)[0] if flat is None else flat)
     can = _canonical(problem, layout, theta)
     flat_c = jnp.asarray(can.embed @ flat)
-    blocks = _stop_blocks(problem, rows) if blocks is None else blocks
+    blocks = _stop_blocks(problem, layout, rows) if blocks is None else blocks
     out = _in_blocks(blocks, lambda b: _block_jacobian(b, can.layout, can.template, flat_c))
     J_c, r, solved = (_joined([o[i] for o in out], blocks, m) for i, m in ((0, 6), (1, 6), (2, 1)))
     return J_c @ can.embed, r, solved
@@ -537,7 +583,7 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
     flat0, unravel = ravel_pytree(theta0)
     flat0, mask = np.asarray(flat0), np.asarray(mask, float)
     lam = np.zeros_like(mask) if prior is None else (np.asarray(prior, float) * mask) ** 2
-    blocks = _stop_blocks(problem)
+    blocks = _stop_blocks(problem, layout)
     weighted = np.asarray(problem.weight).any(axis=1)
 
     def evaluate(f):
