@@ -15,6 +15,7 @@ joints are fitted modulo rigid motions and the frame/target carry the rest.
 """
 
 import dataclasses
+import functools
 import warnings
 from dataclasses import dataclass, field
 
@@ -298,30 +299,32 @@ def _padded_effects(effects: dict, n_sessions: int) -> dict:
     number of sessions) padded with zero rows to `canonical_sessions(n_sessions)`. The
     effects read the row of a stop's session, so rows beyond the data's sessions are never
     read."""
-    target = canonical_sessions(n_sessions)
     out = {}
     for name, e in effects.items():
-        cls = type(e)
-        try:
-            have, want = cls.null(n_sessions), cls.null(target)
-        except Exception:  # an effect without a per-session null: nothing to pad
-            out[name] = e
-            continue
-        grow = [
-            f
-            for f in cls.fields
-            if np.shape(getattr(have, f)) != np.shape(getattr(want, f))
-            and np.shape(getattr(e, f)) == np.shape(getattr(have, f))
-        ]
+        sizes = _session_rows(type(e), n_sessions)
+        grow = [f for f, (have, _) in sizes.items() if np.shape(getattr(e, f)) == have]
         if grow:
             padded = []
             for f in grow:
                 v = np.asarray(getattr(e, f))
-                extra = np.shape(getattr(want, f))[0] - v.shape[0]
+                extra = sizes[f][1][0] - v.shape[0]
                 padded.append(jnp.asarray(np.concatenate([v, np.zeros((extra,) + v.shape[1:])])))
             e = eqx.tree_at(lambda m: [getattr(m, f) for f in grow], e, padded)
         out[name] = e
     return out
+
+
+@functools.cache
+def _session_rows(cls, n_sessions: int) -> dict:
+    """{field: (shape for `n_sessions`, shape for `canonical_sessions`)} of the fields of
+    effect class `cls` whose shape `null` sets by the number of sessions ({} for an effect
+    without a per-session `null`)."""
+    try:
+        have, want = cls.null(n_sessions), cls.null(canonical_sessions(n_sessions))
+    except Exception:
+        return {}
+    shapes = {f: (np.shape(getattr(have, f)), np.shape(getattr(want, f))) for f in cls.fields}
+    return {f: pair for f, pair in shapes.items() if pair[0] != pair[1]}
 
 
 def _stop_blocks(problem: Problem, layout: Layout, rows: int = FIT_BLOCK) -> list:
