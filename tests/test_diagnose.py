@@ -587,6 +587,16 @@ def test_diagnose_cli_on_the_bundled_example(tmp_path, capsys):
     text = (out / "report.md").read_text()
     assert "spiral" in text and (out / "residual_signatures.png").exists()
     assert (out / "effect_backlash.png").exists()
+    # σ is estimated for each model (the file states 5 µm / 2″ and was simulated with them):
+    # every step's χ²/dof is ~1, and the σ each model needed tells them apart
+    sig = [s["noise_sigma"] for s in doc["steps"]]
+    assert sig[-1]["positions"] == pytest.approx(0.005, rel=0.1)
+    assert sig[-1]["angles"] == pytest.approx(np.deg2rad(2 / 3600), rel=0.1)
+    assert sig[0]["positions"] > 10 * sig[-1]["positions"]  # the spiral term unmodelled
+    assert sig[0]["positions"] > sig[1]["positions"] > sig[2]["positions"]
+    printed = capsys.readouterr().err
+    assert "RMS = 0.97" in printed and "(σ estimated for this model: positions 4.9" in printed
+    assert text.count("σ estimated for this model: positions") == 3
 
 
 def test_diagnose_cli_refuses_bad_input(tmp_path, capsys):

@@ -206,6 +206,28 @@ def _lighten(steps: list) -> None:
             step.fit = step.fit.light()
 
 
+def estimated_sigma(cal: Calibration | None) -> dict | None:
+    """{noise group: σ (mm / rad)} a model was fitted with where σ is estimated for each
+    model (None where the stated σ were used as they are). Every model's χ²/dof is ~1 at its
+    own σ: this σ is what tells the models of a search apart in physical units."""
+    n = None if cal is None else cal.noise
+    if n is None or not n.estimated:
+        return None
+    return {name: float(s) for name, s in zip(n.names, n.sigma)}
+
+
+def estimated_sigma_words(cal: Calibration | None) -> str:
+    """'σ estimated for this model: positions 119 µm, angles 40.2 arcsec', or ''."""
+    sig = estimated_sigma(cal)
+    if not sig:
+        return ""
+    parts = []
+    for name, columns in zip(cal.noise.names, cal.noise.columns):
+        unit, f = report_unit(columns)
+        parts.append(f"{name} {sig[name] * f:.3g} {unit}")
+    return "σ estimated for this model: " + ", ".join(parts)
+
+
 @dataclass
 class Step:
     """One round of the greedy search: the model it started from, its fit statistics, the
@@ -226,6 +248,13 @@ class Step:
     screening: object = None  # the dictionary's Screening of this fit (None: not screened)
     terms: list = field(default_factory=list)  # the TermCandidates it screened
 
+    def noise_sigma(self) -> dict | None:
+        """{noise group: σ (mm / rad)} of the step's model (`estimated_sigma`)."""
+        return estimated_sigma(self.fit)
+
+    def noise_words(self) -> str:
+        return estimated_sigma_words(self.fit)
+
     @property
     def added_effect(self) -> str | None:
         """The library effect the step added (its name, in whichever form: `added` holds the
@@ -244,6 +273,7 @@ class Step:
             "structure": None if self.structure is None else self.structure.as_json(),
             "rms": self.rms,
             "heldout_rms": self.heldout_rms,
+            "noise_sigma": self.noise_sigma(),
             "candidates": [c.as_json() for c in self.candidates],
             "dictionary": None
             if self.screening is None
@@ -894,7 +924,9 @@ def diagnose(
         rms = _norm_rms(current, all_rows, mask)
         log(
             f"model {['geometry'] + model}: chi2/dof = {current.chi2:.1f}/{current.dof}, "
-            f"RMS = {rms:.3f} sigma; {structure.words()}"
+            f"RMS = {rms:.3f} sigma"
+            + (f" ({sw})" if (sw := estimated_sigma_words(current)) else "")
+            + f"; {structure.words()}"
         )
         heldout_current = heldout_rms(current, fold_rows, mask)
         cands = []

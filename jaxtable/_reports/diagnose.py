@@ -308,7 +308,9 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
             f"### Step {k + 1}: model {' + '.join(step.model)}",
             "",
             f"χ²/dof = {step.chi2:.1f}/{step.dof}, "
-            f"RMS {step.rms:.3f} σ, held-out RMS {heldout_text(step.heldout_rms, suffix=' σ')}; "
+            f"RMS {step.rms:.3f} σ, held-out RMS {heldout_text(step.heldout_rms, suffix=' σ')}"
+            + (f" ({words})" if (words := step.noise_words()) else "")
+            + "; "
             + (step.structure.words() if step.structure is not None else "")
             + f". Decision: {step.decision}.",
             "",
