@@ -107,6 +107,58 @@ def test_stated_sigma_can_be_trusted_on_request(table, sessions):
     assert "used as stated" in fixed.report()
 
 
+def test_a_reading_without_its_sigma_takes_its_columns_and_keeps_the_statement():
+    """Hand-made: x states 5 µm in session 0 and 8 µm in session 1, z states nothing.
+    Blank x cells take their session's σ (in a session with none, the column's median); z
+    stays unstated, and so does its group (σ is never inferred from another column)."""
+    m = np.ones((8, 6))
+    sigma = np.full((8, 6), np.nan)
+    sigma[:, 3:] = 1e-5
+    sigma[:4, 0] = [0.005, np.nan, 0.005, 0.005]
+    sigma[4:, 0] = [0.008, 0.008, np.nan, np.nan]
+    sigma[:, 1] = 0.006
+    sigma[2, 1] = 0.0  # not positive: not stated either
+    session = np.array([0, 0, 0, 0, 1, 1, 1, 2])
+    sigma[7, 0] = np.nan  # session 2 states no x: the column's median (5, 5, 5, 8, 8 µm: 5)
+    nm = noise_model(m, sigma, session=session, sessions=("A", "B", "C"))
+    np.testing.assert_array_equal(nm.sigma0[:, 0], [5e-3, 5e-3, 5e-3, 5e-3, 8e-3, 8e-3, 8e-3, 5e-3])
+    assert nm.sigma0[2, 1] == 0.006
+    assert np.flatnonzero(nm.filled[:, 0]).tolist() == [1, 6, 7] and nm.filled[2, 1]
+    assert not nm.filled[:, 2].any() and not nm.stated[0] and nm.stated[1]
+    m[:, 2] = np.nan  # without z the positions are stated: x and y fill their blanks
+    nm = noise_model(m, sigma, session=session, sessions=("A", "B", "C"))
+    assert nm.stated.all() and nm.filled.sum() == 4
+
+
+def test_sigma_cells_left_empty_give_the_fit_of_the_whole_file(table, sessions, tmp_path):
+    """A tracker log whose σ columns lost 12 cells (the reading kept): the fit, its σ and
+    its noise statement are those of the whole file, and the report says how many readings
+    took their column's σ. σ = 0 on a reading is refused, naming row and column; on a cell
+    nothing measured, it says nothing."""
+    _, a, _, cal = sessions
+    sigma = a.sigma.copy()
+    rows = np.random.default_rng(3).choice(len(a), 12, replace=False)
+    sigma[rows, np.arange(12) % 6] = np.nan
+    holes = jt.calibrate(table, dataclasses.replace(a, sigma=sigma))
+    np.testing.assert_allclose(holes.value, cal.value, rtol=0, atol=1e-12 * np.abs(cal.value).max())
+    np.testing.assert_allclose(holes.noise.sigma, cal.noise.sigma, rtol=1e-10)
+    assert holes.noise.stated.all() and sum(holes.noise.filled) == 12
+    text = holes.report()
+    assert "σ not stated on 6 readings: its column's stated σ taken" in text, text
+    assert "no σ stated" not in text
+    path = tmp_path / "zero.csv"
+    sigma[rows[0], 0] = 0.0
+    jt.save_measurements(dataclasses.replace(a, sigma=sigma), path)
+    before = path.read_bytes()
+    with pytest.raises(jt.DataFileError, match=rf"row {rows[0] + 1}, column 'sigma_x': σ = 0"):
+        jt.load_measurements(path)
+    assert path.read_bytes() == before
+    measured = a.measured.copy()
+    measured[rows[0], 0] = np.nan  # the same σ = 0 where x was not read: accepted
+    jt.save_measurements(dataclasses.replace(a, measured=measured, sigma=sigma), path)
+    assert np.isnan(jt.load_measurements(path).measured[rows[0], 0])
+
+
 # --- lost cells, empty rows, blank context cells -------------------------------------------
 
 

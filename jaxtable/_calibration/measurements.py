@@ -168,10 +168,11 @@ def load_measurements(path) -> Measurements:
     at the end ignored). Refuses, naming row and column: a missing commanded value, a
     non-numeric cell in a known numeric column (with a hint where it is a decimal comma), a
     row that repeats the header (files joined), an infinite value anywhere (a value not
-    measured is an empty cell or NaN), a negative σ, a blank line between rows, a row with
-    a different number of cells; and a file with no
-    measured column or no commanded-pose columns. Nothing is dropped; unknown columns are
-    kept."""
+    measured is an empty cell or NaN), a negative σ, a σ of 0 for a measured value, a blank
+    line between rows, a row with a different number of cells; and a file with no measured
+    column or no commanded-pose columns. Nothing is dropped; unknown columns are kept. An
+    empty σ cell beside a measured value is not stated (`noise.noise_model` fills it from
+    its column)."""
     path = Path(path)
     header, rows = read_delimited(path, DataFileError, "measurement")
     if not header:
@@ -237,6 +238,16 @@ def load_measurements(path) -> Measurements:
         if len(neg):
             r, c = neg[0]
             raise DataFileError(f"{path}: row {r + 1}, column '{SIGMA[c]}': negative σ")
+        # σ = 0 on a reading would give it infinite weight; where nothing is measured the
+        # cell says nothing (a log may write 0 for the columns an instrument does not read)
+        zero = np.argwhere((sigma == 0) & np.isfinite(measured))
+        if len(zero):
+            r, c = zero[0]
+            raise DataFileError(
+                f"{path}: row {r + 1}, column '{SIGMA[c]}': σ = 0 for a measured value (a "
+                "standard deviation must be positive; leave the cell empty where σ is not "
+                "known: the column's other σ are taken for it)"
+            )
     opt = {c: numeric(c, False) if c in col else None for c in OPTIONAL}
     session = _sessions([rows[r][col["session"]] for r in range(n)]) if "session" in col else None
     known = set(CMD + CMD_L + MEASURED + SIGMA + OPTIONAL + ("session",))

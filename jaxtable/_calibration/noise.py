@@ -96,7 +96,9 @@ class NoiseModel:
       not named: one σ); None: each fit tests whether the data reject one σ per group and
       weights the parts by their own where they do (`pool_columns`);
     - `session` (N,) int: each row's session index; `sessions` (S,): their labels. A part
-      of a group is one column in one session, index k = 6 s + c.
+      of a group is one column in one session, index k = 6 s + c;
+    - `filled` (N, 6) bool or None: measured cells the file gave no σ where their column
+      states it elsewhere, which took their column's (`_fill_unstated`).
     """
 
     groups: np.ndarray
@@ -107,6 +109,7 @@ class NoiseModel:
     ratio: dict | None = None
     session: np.ndarray | None = None
     sessions: tuple = ("1",)
+    filled: np.ndarray | None = None
 
     def parts(self, g: int) -> list[int]:
         """Part indices 6 s + c of group g."""
@@ -144,14 +147,18 @@ def noise_model(
     n = len(measured)
     stated_cell = np.zeros((n, 6), bool)
     sigma0 = np.where(mask, DEFAULT_SIGMA, np.nan)
+    filled = np.zeros((n, 6), bool)
     if sigma is not None:
         ok = mask & np.isfinite(sigma) & (np.asarray(sigma) > 0)
         sigma0 = np.where(ok, sigma, sigma0)
         stated_cell |= ok
+        sigma0, filled = _fill_unstated(sigma0, ok, mask, session)
+        stated_cell |= filled
     for c, v in (override or {}).items():
         k = params.POSE.index(c)
         sigma0[:, k] = np.where(mask[:, k], v, np.nan)
         stated_cell[:, k] = mask[:, k]
+        filled[:, k] = False
     # instruments: the column sets that many rows read; a row with a lost cell belongs to
     # the smallest such set that holds its columns (a lost cell is not another instrument).
     # Rows are grouped by their column set as a 6-bit code: loops run over the (at most 64)
@@ -198,8 +205,34 @@ def noise_model(
     sessions = ("1",) if sessions is None else tuple(str(x) for x in sessions)
     ratio = None if ratio is None else dict(ratio)
     return NoiseModel(
-        groups, tuple(names), tuple(columns), sigma0, stated, ratio, session, sessions
+        groups,
+        tuple(names),
+        tuple(columns),
+        sigma0,
+        stated,
+        ratio,
+        session,
+        sessions,
+        filled & (groups >= 0),
     )
+
+
+def _fill_unstated(sigma0, ok, mask, session):
+    """A measured cell without a σ (empty, NaN or not positive) where the file states σ for
+    other cells of its column takes the median σ stated in its column in its session, or in
+    its column where its session states none: the instrument that read it is the one that
+    read the others. A column with no σ stated anywhere stays unstated (its group then is:
+    σ is not inferred from another column's). Returns (σ, filled (N, 6) bool)."""
+    session = np.zeros(len(sigma0), int) if session is None else np.asarray(session, int)
+    need = mask & ~ok
+    out = np.array(sigma0, float)
+    for c in np.flatnonzero(need.any(axis=0) & ok.any(axis=0)):  # columns, not rows
+        fill = np.full(len(out), np.median(out[ok[:, c], c]))
+        for s in np.unique(session[ok[:, c]]):  # sessions, not rows
+            at = session == s
+            fill[at] = np.median(out[ok[:, c] & at, c])
+        out[:, c] = np.where(need[:, c], fill, out[:, c])
+    return out, need & ok.any(axis=0)[None, :]
 
 
 def part_label(k: int, sessions: tuple) -> str:
@@ -227,7 +260,9 @@ class NoiseEstimate:
       the stated σ;
     - `split` (G,): the data reject one σ for the group's parts (`SPLIT_ALPHA`), so each
       part was weighted by its own (`scale`, `sigma` are then the pooled values);
-      `equal_p` (G,): that test's p-value (NaN for a single part); `sessions` (S,) labels.
+      `equal_p` (G,): that test's p-value (NaN for a single part); `sessions` (S,) labels;
+    - `filled` (G,): readings the file gave no σ, which took their column's stated σ
+      (`NoiseModel.filled`).
     """
 
     names: tuple
@@ -250,6 +285,14 @@ class NoiseEstimate:
     split: np.ndarray
     equal_p: np.ndarray
     sessions: tuple = ("1",)
+    filled: tuple = ()
+
+    def filled_words(self, g: int) -> str:
+        """'; σ not stated on 1 reading: its column's stated σ taken', or ''."""
+        k = self.filled[g] if g < len(self.filled) else 0
+        if not k:
+            return ""
+        return f"; σ not stated on {k} reading{'s' if k > 1 else ''}: its column's stated σ taken"
 
     def _parts(self, g: int) -> list[int]:
         """Group g's parts that have cells in the fit."""
@@ -281,6 +324,7 @@ class NoiseEstimate:
             out.append(
                 f"noise, {name}: stated σ {st}, data imply {s} {dof}; ratio "
                 f"{self.scale[g]:.3f} (95 % interval {lo:.3f}-{hi:.3f}): {verdict}{use}"
+                + self.filled_words(g)
             )
         return out
 
@@ -319,7 +363,7 @@ class NoiseEstimate:
         )
         use = "" if self.estimated else " (used as stated: noise='fixed')"
         st = f"{self.stated_sigma[g] * f:.3g} {unit}"
-        return f"{head}: stated σ {st}, data imply {body}: {verdict}{use}"
+        return f"{head}: stated σ {st}, data imply {body}: {verdict}{use}" + self.filled_words(g)
 
     def as_json(self) -> dict:
         return {
@@ -333,6 +377,7 @@ class NoiseEstimate:
                 if not self.stated[g]
                 else [float(x) for x in self.ratio_interval[g]],
                 "consistent": self.consistent[g],
+                "sigma_filled": self.filled[g] if g < len(self.filled) else 0,
                 "units": "rad" if self.columns[g][0] >= 3 else "mm",
                 "split": bool(self.split[g]),
                 "equal_sigma_p": None if np.isnan(self.equal_p[g]) else float(self.equal_p[g]),
@@ -579,4 +624,8 @@ def estimate(
         np.asarray(split, bool),
         np.asarray(equal_p, float),
         model.sessions,
+        tuple(
+            0 if model.filled is None else int((model.filled & (model.groups == g)).sum())
+            for g in range(len(model.names))
+        ),
     )
