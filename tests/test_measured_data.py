@@ -13,7 +13,7 @@ import pytest
 
 import jaxtable as jt
 from jaxtable._calibration.fit import initial_frames, nuisance_dofs
-from jaxtable._calibration.noise import noise_model, parse_sigma
+from jaxtable._calibration.noise import noise_model, parse_sigma, unit_hint
 from jaxtable.cli import main
 
 POS_SIGMA, ANG_SIGMA = 0.005, np.deg2rad(2.0 / 3600.0)  # the tracker6 default
@@ -105,6 +105,23 @@ def test_stated_sigma_can_be_trusted_on_request(table, sessions):
     assert fixed.chi2 == pytest.approx(expected, rel=0.02)
     assert fixed.chi2 > 1.3 * fixed.dof
     assert "used as stated" in fixed.report()
+
+
+def test_sigma_written_in_another_unit_is_named(table, sessions):
+    """σ columns filled in µm and arcsec (1000× and 3600× the file's mm and degrees): the
+    fit is the fit of the right σ, the report names the likely units; a σ misstated by a
+    factor of 2 (or 25 %: `test_sigma_absent_or_misstated...`) is not taken for a unit."""
+    _, a, _, cal = sessions
+    slip = a.sigma * np.array([1e3] * 3 + [3600.0] * 3)
+    other = jt.calibrate(table, dataclasses.replace(a, sigma=slip))
+    np.testing.assert_allclose(other.value, cal.value, atol=1e-4 * np.abs(cal.value).max())
+    text = other.report()
+    assert "σ written in µm? The file's σ are in mm" in text, text
+    assert "σ written in arcsec? The file's σ are in degrees" in text, text
+    twice = jt.calibrate(table, dataclasses.replace(a, sigma=a.sigma * 2))
+    assert "too large" in twice.report() and "written in" not in twice.report()
+    assert unit_hint(1 / 17.4533, (3, 4, 5)).startswith(" (a ratio near 0.0573: σ written in mrad")
+    assert unit_hint(1 / 25.0, (0, 1, 2)) == unit_hint(1.0, (3, 4, 5)) == ""
 
 
 def test_a_reading_without_its_sigma_takes_its_columns_and_keeps_the_statement():

@@ -235,6 +235,40 @@ def _fill_unstated(sigma0, ok, mask, session):
     return out, need & ok.any(axis=0)[None, :]
 
 
+# estimated / stated σ where the σ columns were written in another unit than the file's
+# (mm, degrees): σ in µm in a mm column is stated 1000× too large, so the ratio is 0.001
+UNIT_SLIPS = {
+    "positions": (("µm", 1e-3), ("metres", 1e3), ("inches", 25.4)),
+    "angles": (
+        ("arcsec", 1 / 3600),
+        ("arcmin", 1 / 60),
+        ("radians", np.rad2deg(1.0)),
+        ("mrad", np.rad2deg(1.0) / 1e3),
+        ("µrad", np.rad2deg(1.0) / 1e6),
+    ),
+}
+
+
+def _ratio(x: float) -> str:
+    """A ratio of σ for a report: three decimals, or three significant digits far from 1."""
+    return f"{x:.3f}" if 0.01 <= x < 1000 else f"{x:.3g}"
+
+
+def unit_hint(ratio: float, columns) -> str:
+    """' (a ratio near 0.001: σ written in µm? The file's σ are in mm)' where the ratio of
+    estimated to stated σ is within 30 % of a unit slip (`UNIT_SLIPS`), else ''. A σ stated
+    a few times too large or small is a misstatement; a factor of 1000 or 3600 is a unit."""
+    kind = "angles" if columns[0] >= 3 else "positions"
+    for unit, factor in UNIT_SLIPS[kind]:
+        if abs(np.log(ratio / factor)) < np.log(1.3):
+            file_unit = "degrees" if kind == "angles" else "mm"
+            return (
+                f" (a ratio near {factor:.3g}: σ written in {unit}? The file's σ are in "
+                f"{file_unit})"
+            )
+    return ""
+
+
 def part_label(k: int, sessions: tuple) -> str:
     """'z' for part k = 6 s + c with one session, else 'z (session B)'."""
     col = params.POSE[k % 6]
@@ -319,12 +353,13 @@ class NoiseEstimate:
                 if self.consistent[g]
                 else "INCONSISTENT with the data: the stated σ is "
                 + ("too small" if lo > 1 else "too large")
+                + unit_hint(self.scale[g], self.columns[g])
             )
             use = "" if self.estimated else " (used as stated: noise='fixed')"
             out.append(
                 f"noise, {name}: stated σ {st}, data imply {s} {dof}; ratio "
-                f"{self.scale[g]:.3f} (95 % interval {lo:.3f}-{hi:.3f}): {verdict}{use}"
-                + self.filled_words(g)
+                f"{_ratio(self.scale[g])} (95 % interval {_ratio(lo)}-{_ratio(hi)}): "
+                f"{verdict}{use}" + self.filled_words(g)
             )
         return out
 
@@ -345,7 +380,7 @@ class NoiseEstimate:
             )
             if self.stated[g]:
                 lo, hi = self.column_interval[g, c]
-                s += f" (ratio {self.column_scale[g, c]:.3f}, 95 % {lo:.3f}-{hi:.3f})"
+                s += f" (ratio {_ratio(self.column_scale[g, c])}, 95 % {_ratio(lo)}-{_ratio(hi)})"
             parts.append(s)
         dof = ", ".join(f"{self.column_redundancy[g, c]:.0f}" for c in cols)
         body = f"{'; '.join(parts)} {unit} (dof {dof})"
