@@ -220,9 +220,11 @@ def noise_model(
 def _fill_unstated(sigma0, ok, mask, session):
     """A measured cell without a σ (empty, NaN or not positive) where the file states σ for
     other cells of its column takes the median σ stated in its column in its session, or in
-    its column where its session states none: the instrument that read it is the one that
-    read the others. A column with no σ stated anywhere stays unstated (its group then is:
-    σ is not inferred from another column's). Returns (σ, filled (N, 6) bool)."""
+    its column where its session states none: in a session one instrument reads a column,
+    so the reading is most likely as good as the others (a file mixing instruments in one
+    column and session may be wrong there: the report counts the readings filled). A column
+    with no σ stated anywhere stays unstated (its group then is: σ is not inferred from
+    another column's). Returns (σ, filled (N, 6) bool)."""
     session = np.zeros(len(sigma0), int) if session is None else np.asarray(session, int)
     need = mask & ~ok
     out = np.array(sigma0, float)
