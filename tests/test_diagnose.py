@@ -10,6 +10,7 @@ criteria name (5 seeds per effect, 40 null seeds)."""
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import jax
@@ -408,6 +409,8 @@ def test_effects_found_without_sigma_columns():
     nominal, data, _ = case("backlash", 11)
     diag = diagnose(nominal, _misstated(data, None), log=_quiet)
     assert diag.selected == ["backlash"] and not diag.unexplained, diag.selected
+    words = diag.steps[-1].noise_words()  # no σ stated: the σ alone, no ratio to a statement
+    assert words.startswith("σ estimated for this model: positions") and "×" not in words
     nominal, data, _ = case("extension_squared", 11)
     diag = diagnose(nominal, _misstated(data, 1.25), log=_quiet, discover=False)
     assert diag.unexplained and diag.selected == [], diag.selected
@@ -597,6 +600,10 @@ def test_diagnose_cli_on_the_bundled_example(tmp_path, capsys):
     printed = capsys.readouterr().err
     assert "RMS = 0.97" in printed and "(σ estimated for this model: positions 4.9" in printed
     assert text.count("σ estimated for this model: positions") == 3
+    # each step's σ against the file's 5 µm, as the JSON has it: the final model's about 1×
+    ratios = [float(r) for r in re.findall(r"positions [\d.]+ µm = ([\d.]+)× the stated", text)]
+    assert ratios == pytest.approx([s["positions"] / 0.005 for s in sig], rel=0.05), ratios
+    assert ratios[-1] == pytest.approx(1.0, rel=0.1)
 
 
 def test_diagnose_cli_refuses_bad_input(tmp_path, capsys):
