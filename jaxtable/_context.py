@@ -16,8 +16,9 @@ class Context(eqx.Module):
     - `payload` (): kg on the platform besides its own mass (compliance; at the platform CoG);
     - `session` (): int, index of the recording session in order of first appearance
       (rehoming; 0 = the first);
-    - `time` (): when the stop was measured, scaled to 0..1 over the file (row index /
-      (rows − 1); the discovery dictionary's drift term `t`; default 0).
+    - `time` (): when the stop was measured, scaled to 0..1 over the file (`run_time`: the
+      file's `time` column where it has one, else row index / (rows − 1); the discovery
+      dictionary's drift term `t`; default 0).
     """
 
     direction: Float[ArrayLike, "6"]
@@ -62,9 +63,34 @@ def batch_context(n: int, context: "Context | None" = None) -> Context:
     )
 
 
-def run_time(n: int) -> np.ndarray:
-    """(n,) the stops' time over a file of n rows, scaled to 0..1 (row index / (n − 1))."""
-    return np.arange(n, dtype=float) / max(n - 1, 1)
+def run_time(n: int, time=None) -> np.ndarray:
+    """(n,) the stops' time over a file of n rows, scaled to 0..1: from the clock `time` (N,)
+    (s; NaN where not logged: interpolated by row) where it has two different readings, so
+    that a pause between stops is a pause in the drift; else row index / (n − 1).
+    Raises ValueError naming the row where the clock goes back (rows are in the order the
+    table moved)."""
+    rows = np.arange(n, dtype=float)
+    t = None if time is None else np.asarray(time, float)
+    ok = np.zeros(n, bool) if t is None else np.isfinite(t)
+    if ok.sum() < 2 or t[ok][-1] == t[ok][0]:
+        return rows / max(n - 1, 1)
+    back = time_goes_back(t)
+    if back is not None:
+        raise ValueError(
+            f"row {back + 1}, column 'time': the clock goes back ({t[ok][t[ok] > t[back]][0]:g} "
+            f"before it, {t[back]:g} here); rows are in the order the table moved"
+        )
+    t = np.interp(rows, rows[ok], t[ok])
+    return (t - t[0]) / (t[-1] - t[0])
+
+
+def time_goes_back(time) -> int | None:
+    """The first row (0-based) whose clock reading is earlier than one before it (NaN cells
+    skipped), or None."""
+    t = np.asarray(time, float)
+    ok = np.flatnonzero(np.isfinite(t))
+    drop = np.flatnonzero(np.diff(t[ok]) < 0)
+    return None if len(drop) == 0 else int(ok[drop[0] + 1])
 
 
 def directions(cmd_lengths: np.ndarray) -> np.ndarray:

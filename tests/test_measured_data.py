@@ -12,8 +12,11 @@ import numpy as np
 import pytest
 
 import jaxtable as jt
+from jaxtable import _params as params
 from jaxtable._calibration.fit import initial_frames, nuisance_dofs
 from jaxtable._calibration.noise import noise_model, parse_sigma, unit_hint
+from jaxtable._context import run_time
+from jaxtable._effects import Discovered
 from jaxtable.cli import main
 
 POS_SIGMA, ANG_SIGMA = 0.005, np.deg2rad(2.0 / 3600.0)  # the tracker6 default
@@ -105,6 +108,63 @@ def test_stated_sigma_can_be_trusted_on_request(table, sessions):
     assert fixed.chi2 == pytest.approx(expected, rel=0.02)
     assert fixed.chi2 > 1.3 * fixed.dof
     assert "used as stated" in fixed.report()
+
+
+def test_the_run_s_clock_from_a_time_column():
+    """`run_time`: the clock scaled to 0..1, a cell not logged interpolated by row; without
+    two different readings, the row order; a clock that goes back is refused by row."""
+    np.testing.assert_allclose(run_time(5, [0.0, 10, np.nan, 40, 100]), [0, 0.1, 0.25, 0.4, 1])
+    np.testing.assert_allclose(run_time(5, [np.nan, 10, 10, 30, np.nan]), [0, 0, 0, 1, 1])
+    for flat in (None, np.full(5, np.nan), np.full(5, 7.0)):
+        np.testing.assert_allclose(run_time(5, flat), [0, 0.25, 0.5, 0.75, 1])
+    with pytest.raises(ValueError, match="row 4, column 'time': the clock goes back"):
+        run_time(5, [0.0, 10, np.nan, 5, 100])
+
+
+def test_a_time_column_is_read_kept_and_checked(tmp_path, sessions):
+    _, a, _, _ = sessions
+    clock = 60.0 * np.arange(len(a)) + 0.25
+    clock[4] = np.nan  # not logged
+    path = tmp_path / "timed.csv"
+    jt.save_measurements(dataclasses.replace(a, time=clock), path)
+    back = jt.load_measurements(path)
+    np.testing.assert_array_equal(back.time, clock)
+    np.testing.assert_array_equal(back.subset([3, 5]).time, clock[[3, 5]])
+    text = path.read_text().splitlines()
+    k = text[0].split(",").index("time")
+    for row, cell, message in (
+        (7, "100.0", r"row 7, column 'time': the clock goes back"),
+        (7, "12:03:05", r"row 7, column 'time': '12:03:05' is not a number \(the clock in s"),
+    ):
+        lines = [line.split(",") for line in text]
+        lines[row][k] = cell
+        bad = tmp_path / "bad.csv"
+        bad.write_text("\n".join(",".join(line) for line in lines) + "\n")
+        with pytest.raises(jt.DataFileError, match=message):
+            jt.load_measurements(bad)
+
+
+def test_a_pause_in_the_log_is_a_pause_in_the_drift(table):
+    """Two half-hours of stops with three hours between them, the legs drifting with the
+    clock (a warm-up, 15-30 µm over the run): with the time column the drift term `t` fits
+    at the noise and recovers the planted drift (within 4 σ); in row order the pause is
+    missing, the drift jumps where the model has none, and the fit is off."""
+    true = jt.perturb_table(table, 4)
+    clock = np.concatenate([np.arange(60) * 30.0, 12600.0 + np.arange(60) * 30.0])
+    drift = np.array([0.03, -0.02, 0.025, 0.015, -0.03, 0.02])
+    eff = {"spiral": jt.Spiral.from_table(true), "discovered": Discovered(t=drift)}
+    data = jt.simulate(
+        table, true, jt.plan_random(120, 3), jt.tracker6(), effects=eff, time=clock, seed=3
+    )
+    model = {"spiral": jt.Spiral.from_table(table), "discovered": Discovered()}
+    free = params.GEOMETRY + ("discovered.t",)
+    timed = jt.calibrate(table, data, free=free, effects=model, noise="fixed")
+    value, std = timed.parameter("discovered.t")
+    assert timed.chi2 / timed.dof < 1.2, timed.chi2 / timed.dof  # dof ~700: sd 0.05
+    assert np.all(np.abs(value - drift) < 4 * std), (value, std)
+    rows = jt.calibrate(table, dataclasses.replace(data, time=None), free=free, effects=model,
+                        noise="fixed")  # fmt: skip
+    assert rows.chi2 / rows.dof > 1.5, rows.chi2 / rows.dof
 
 
 def test_sigma_written_in_another_unit_is_named(table, sessions):

@@ -30,7 +30,7 @@ CMD = tuple(f"cmd_{c}" for c in POSE_COLUMNS)
 CMD_L = tuple(f"cmd_l{i}" for i in range(1, 7))
 MEASURED = POSE_COLUMNS
 SIGMA = tuple(f"sigma_{c}" for c in POSE_COLUMNS)
-OPTIONAL = ("temperature", "payload")
+OPTIONAL = ("temperature", "payload", "time")
 
 
 class DataFileError(ValueError):
@@ -47,6 +47,8 @@ class Measurements:
       interferometer along x fills column 0 only);
     - `sigma` (N, 6) standard deviations or None (then the instrument's nominal σ);
     - `temperature`, `payload` (N,) or None; `session` (N,) labels (default all "1");
+    - `time` (N,) s or None: the clock of each stop (NaN where not logged); the drift term
+      `t` runs over it (`_context.run_time`), else over the row order;
     - `extra`: unknown columns, kept as strings and written back;
     - `aside` (N, 6) bool or None: readings set aside as gross errors (`outliers.without`):
       NaN in `measured`, but read, so that the row keeps its instrument's set of columns.
@@ -61,6 +63,7 @@ class Measurements:
     session: np.ndarray | None = None
     extra: dict = field(default_factory=dict)
     aside: np.ndarray | None = None
+    time: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.cmd_pose)
@@ -111,6 +114,7 @@ class Measurements:
             take(self.session),
             {k: take(v) for k, v in self.extra.items()},
             take(self.aside),
+            take(self.time),
         )
 
 
@@ -128,7 +132,8 @@ def _cell(value: str, row: int, col: str, path, required: bool) -> float:
             float(v.replace(",", "."))
             hint = " (a decimal comma: write numbers with a decimal point)"
         except ValueError:
-            pass
+            if col == "time":
+                hint = " (the clock in seconds; rename the column to keep it unused)"
         raise DataFileError(
             f"{path}: row {row}, column '{col}': '{value}' is not a number{hint}"
         ) from None
@@ -249,11 +254,29 @@ def load_measurements(path) -> Measurements:
                 "known: the column's other σ are taken for it)"
             )
     opt = {c: numeric(c, False) if c in col else None for c in OPTIONAL}
+    if opt["time"] is not None:
+        from .._context import time_goes_back
+
+        back = time_goes_back(opt["time"])
+        if back is not None:
+            raise DataFileError(
+                f"{path}: row {back + 1}, column 'time': the clock goes back (rows are in the "
+                "order the table moved; sessions logged on their own clocks need one clock, "
+                "e.g. seconds since the first began, or rename the column to keep it unused)"
+            )
     session = _sessions([rows[r][col["session"]] for r in range(n)]) if "session" in col else None
     known = set(CMD + CMD_L + MEASURED + SIGMA + OPTIONAL + ("session",))
     extra = {h: np.array([rows[r][col[h]] for r in range(n)]) for h in header if h not in known}
     return Measurements(
-        cmd, measured, cmd_l, sigma, opt["temperature"], opt["payload"], session, extra
+        cmd,
+        measured,
+        cmd_l,
+        sigma,
+        opt["temperature"],
+        opt["payload"],
+        session,
+        extra,
+        time=opt["time"],
     )
 
 

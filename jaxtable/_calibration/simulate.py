@@ -90,6 +90,7 @@ def simulate(
     session="1",
     temperature=None,
     payload=None,
+    time=None,
     seed: int = 0,
 ) -> Measurements:
     """Measurements of the `true` table driven by a controller that believes `nominal`.
@@ -98,7 +99,8 @@ def simulate(
     the table visits them); the true table (with `effects`, default its own hardware effects:
     the spiral term) settles at the exact forward-kinematics pose in each stop's context
     (direction of travel from the row order, `temperature` °C and `payload` kg: scalars or
-    (N,), `session`: one label or (N,) labels); the instrument (`target` (6,), `frame` (6,)
+    (N,), `session`: one label or (N,) labels, `time` (N,) s: the clock the drift term `t`
+    runs over, default the row order); the instrument (`target` (6,), `frame` (6,)
     or one row per session, mm / rad) reads it with its noise. Returns the rows with
     commanded lengths, the instrument's columns and its σ (and temperature / payload if
     given).
@@ -118,7 +120,7 @@ def simulate(
         20.0 if temp is None else temp,
         0.0 if load is None else load,
         index,
-        run_time(n),
+        run_time(n, time),
     )
     actual = forward(
         true, cmd, effects=effects, nominal=nominal, guess=poses, context=batch_context(n, ctx)
@@ -139,6 +141,7 @@ def simulate(
         None if temp is None else np.array(temp),
         None if load is None else np.array(load),
         session=np.array(labels),
+        time=None if time is None else np.array(time, float),
     )
 
 
@@ -157,4 +160,5 @@ def concat(*parts: Measurements) -> Measurements:
         cat("temperature"),
         cat("payload"),
         cat("session"),
+        time=cat("time"),
     )
