@@ -72,14 +72,15 @@ def run_time(n: int, time=None) -> np.ndarray:
     rows = np.arange(n, dtype=float)
     t = None if time is None else np.asarray(time, float)
     ok = np.zeros(n, bool) if t is None else np.isfinite(t)
+    back = None if t is None else time_goes_back(t)
+    if back is not None:
+        before = t[:back][ok[:back]][-1]
+        raise ValueError(
+            f"row {back + 1}, column 'time': the clock goes back ({before:g} before it, "
+            f"{t[back]:g} here); rows are in the order the table moved"
+        )
     if ok.sum() < 2 or t[ok][-1] == t[ok][0]:
         return rows / max(n - 1, 1)
-    back = time_goes_back(t)
-    if back is not None:
-        raise ValueError(
-            f"row {back + 1}, column 'time': the clock goes back ({t[ok][t[ok] > t[back]][0]:g} "
-            f"before it, {t[back]:g} here); rows are in the order the table moved"
-        )
     t = np.interp(rows, rows[ok], t[ok])
     return (t - t[0]) / (t[-1] - t[0])
 

@@ -117,8 +117,10 @@ def test_the_run_s_clock_from_a_time_column():
     np.testing.assert_allclose(run_time(5, [np.nan, 10, 10, 30, np.nan]), [0, 0, 0, 1, 1])
     for flat in (None, np.full(5, np.nan), np.full(5, 7.0)):
         np.testing.assert_allclose(run_time(5, flat), [0, 0.25, 0.5, 0.75, 1])
-    with pytest.raises(ValueError, match="row 4, column 'time': the clock goes back"):
+    with pytest.raises(ValueError, match=r"row 4, column 'time': the clock goes back \(10 before"):
         run_time(5, [0.0, 10, np.nan, 5, 100])
+    with pytest.raises(ValueError, match="row 3, column 'time'"):
+        run_time(3, [0.0, 10, 0.0])  # back to where it began
 
 
 def test_a_time_column_is_read_kept_and_checked(tmp_path, sessions):
