@@ -1174,11 +1174,11 @@ def make_problem(
             f"row {r + 1}: commanded length of leg {leg + 1} ({cmd[r, leg]:.3f} mm) is outside "
             f"the stroke [{lo}, {hi}]" + (f" ({len(bad)} such cells)" if len(bad) > 1 else "")
         )
-    if sigma0 is None:
-        sigma0 = noise_model(
+    sigma = sigma0
+    if sigma is None:
+        sigma = noise_model(
             data.measured, data.sigma, session=data.session_index, sessions=data.sessions
         ).sigma0
-    sigma = sigma0
     return Problem(
         nominal=nominal,
         start=nominal,
