@@ -63,34 +63,63 @@ def batch_context(n: int, context: "Context | None" = None) -> Context:
     )
 
 
-def run_time(n: int, time=None) -> np.ndarray:
+def run_time(n: int, time=None, session=None) -> np.ndarray:
     """(n,) the stops' time over a file of n rows, scaled to 0..1: from the clock `time` (N,)
     (s; NaN where not logged: interpolated by row) where it has two different readings, so
     that a pause between stops is a pause in the drift; else row index / (n − 1).
-    Raises ValueError naming the row where the clock goes back (rows are in the order the
-    table moved)."""
+
+    `session` (N,) labels or indices: a clock may start again where the session changes
+    (each recording run logged on its own clock, `time_goes_back`); the runs are then put
+    end to end in row order, each begun one typical step (the median step between the
+    readings of a run) after the last reading before it, since the pause between them is
+    not in the file. Raises ValueError naming the row where the clock goes back within a
+    session (rows are in the order the table moved)."""
     rows = np.arange(n, dtype=float)
     t = None if time is None else np.asarray(time, float)
     ok = np.zeros(n, bool) if t is None else np.isfinite(t)
-    back = None if t is None else time_goes_back(t)
+    back = None if t is None else time_goes_back(t, session)
     if back is not None:
         before = t[:back][ok[:back]][-1]
         raise ValueError(
             f"row {back + 1}, column 'time': the clock goes back ({before:g} before it, "
             f"{t[back]:g} here); rows are in the order the table moved"
         )
-    if ok.sum() < 2 or t[ok][-1] == t[ok][0]:
+    if ok.sum() < 2:
+        return rows / max(n - 1, 1)
+    step = np.diff(t[ok])
+    if np.any(step < 0):  # runs on their own clocks: put end to end
+        forward = step[step >= 0]
+        typical = np.median(forward[forward > 0]) if np.any(forward > 0) else 1.0
+        t = t.copy()
+        t[ok] = t[ok][0] + np.concatenate([[0.0], np.cumsum(np.where(step < 0, typical, step))])
+    if t[ok][-1] == t[ok][0]:
         return rows / max(n - 1, 1)
     t = np.interp(rows, rows[ok], t[ok])
     return (t - t[0]) / (t[-1] - t[0])
 
 
-def time_goes_back(time) -> int | None:
-    """The first row (0-based) whose clock reading is earlier than one before it (NaN cells
-    skipped), or None."""
+def clock_restarts(time) -> int:
+    """How many times the clock `time` (N,) goes back (NaN cells skipped): where
+    `time_goes_back` found nothing, the times it starts again with a new session."""
     t = np.asarray(time, float)
     ok = np.flatnonzero(np.isfinite(t))
-    drop = np.flatnonzero(np.diff(t[ok]) < 0)
+    return int(np.sum(np.diff(t[ok]) < 0))
+
+
+def time_goes_back(time, session=None) -> int | None:
+    """The first row (0-based) whose clock reading is earlier than the one logged before it
+    (NaN cells skipped) while the session is the same (`session` (N,) labels or indices;
+    None: one session), or None. A clock that starts again with a new session is a
+    recording run logged on its own clock."""
+    t = np.asarray(time, float)
+    ok = np.flatnonzero(np.isfinite(t))
+    drop = np.diff(t[ok]) < 0
+    if session is not None:
+        s = np.asarray(session)
+        # a session change anywhere between two logged readings
+        changes = np.concatenate([[0], np.cumsum(s[1:] != s[:-1])])
+        drop &= changes[ok[1:]] == changes[ok[:-1]]
+    drop = np.flatnonzero(drop)
     return None if len(drop) == 0 else int(ok[drop[0] + 1])
 
 

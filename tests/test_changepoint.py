@@ -259,6 +259,27 @@ def _warming(tau: float | None, n: int = 100):
     return table, data
 
 
+def test_a_drift_across_a_pause_is_a_drift_on_the_log_s_clock():
+    """Aluminium legs (23e-6 /K) warming 20 K linearly in time over two 50-minute runs with
+    a 50-minute pause between them (one session, the `time` column logged): in row order
+    the pause is a jump in the drift, which a step at the pause nearly matches; on the
+    clock the drift is a line, takes out more than the step, and no step is found."""
+    table = jt.reference_table()
+    true = jt.perturb_table(table, 4, joint_sigma=0.010, zero_sigma=0.050)
+    rows = np.arange(100)
+    clock = 60.0 * rows + np.where(rows >= 50, 3000.0, 0.0)
+    temperature = 20 + 20 * clock / clock[-1] + np.random.default_rng(5).normal(0, 0.2, 100)
+    data = jt.simulate(table, true, jt.plan_random(100, 5), jt.tracker6(),
+                       effects={"thermal": jt.Thermal(np.full(6, 23e-6))}, compensated=True,
+                       seed=5, temperature=temperature, time=clock)  # fmt: skip
+    timed = step_scan(*_fit(table, data)[::-1])
+    assert timed.p_value < 0.01 and timed.row == 51 and timed.kind == "leg zeros"
+    assert timed.drift_chi2 > 1.04 * timed.delta_chi2 and not timed.found, timed.words()
+    ordered = step_scan(*_fit(table, dataclasses.replace(data, time=None))[::-1])
+    assert ordered.row == 51 and ordered.delta_chi2 == pytest.approx(timed.delta_chi2)
+    assert ordered.drift_chi2 < timed.drift_chi2 - 0.04 * timed.delta_chi2
+
+
 def test_a_drift_is_not_taken_for_a_step():
     """Thermal growth the geometric model misses, the temperature rising linearly: a step
     part-way takes out much of it (p < 0.01), but a linear drift of the same parameters

@@ -13,8 +13,10 @@ import pytest
 
 import jaxtable as jt
 from jaxtable import _params as params
+from jaxtable._calibration.clock import ClockError, read_clock
 from jaxtable._calibration.fit import initial_frames, nuisance_dofs
 from jaxtable._calibration.noise import noise_model, parse_sigma, unit_hint
+from jaxtable._calibration.simulate import concat
 from jaxtable._context import run_time
 from jaxtable._effects import Discovered
 from jaxtable.cli import main
@@ -121,6 +123,64 @@ def test_the_run_s_clock_from_a_time_column():
         run_time(5, [0.0, 10, np.nan, 5, 100])
     with pytest.raises(ValueError, match="row 3, column 'time'"):
         run_time(3, [0.0, 10, 0.0])  # back to where it began
+    # each session on its own clock: put end to end, one typical (median) step apart
+    np.testing.assert_allclose(
+        run_time(6, [0.0, 10, 20, 0, 10, 20], [0, 0, 0, 1, 1, 1]), [0, 0.2, 0.4, 0.6, 0.8, 1]
+    )
+    # the last reading before the restart is not logged: 0, 10, 20 | 5, 15 -> 0 … 40
+    np.testing.assert_allclose(
+        run_time(6, [0.0, 10, 20, np.nan, 5, 15], [0, 0, 0, 1, 1, 1]),
+        [0, 0.25, 0.5, 0.625, 0.75, 1],
+    )
+    # steps of 10 and 30 s (median 10: not the mean 20), a second session on one clock
+    # with the first keeps its gap; a third starts again
+    np.testing.assert_allclose(
+        run_time(6, [0.0, 10, 20, 50, 60, 0], ["a", "a", "a", "a", "b", "c"]),
+        np.array([0, 10, 20, 50, 60, 70]) / 70,
+    )
+    with pytest.raises(ValueError, match="row 5, column 'time'"):
+        run_time(6, [0.0, 10, 20, 10, 5, 15], [0, 0, 0, 1, 1, 1])  # back within session 1
+
+
+def test_clock_forms_a_logger_writes_are_read_as_seconds():
+    """Dates and times (ISO 8601 and day-first with dots, with and without a zone) against
+    numpy's datetime64, a log past midnight, and the cells refused with their row."""
+    epoch = np.datetime64("1970-01-01T00:00:00", "us")
+
+    def since_1970(text):
+        return (np.datetime64(text, "us") - epoch) / np.timedelta64(1, "s")
+
+    iso = ["2026-11-28T08:12:28.5", "", "2026-11-28 08:12:30", "2026/11/29 09:00", "nan"]
+    expected = [since_1970("2026-11-28T08:12:28.5"), np.nan, since_1970("2026-11-28T08:12:30")]
+    expected += [since_1970("2026-11-29T09:00"), np.nan]
+    np.testing.assert_array_equal(read_clock(iso), expected)
+    np.testing.assert_array_equal(
+        read_clock(["28.11.2026 08:12:28,25", "1.12.2026 00:00"]),
+        [since_1970("2026-11-28T08:12:28.25"), since_1970("2026-12-01")],
+    )
+    # zones: 08:12:28 at UTC+1 is 07:12:28 UTC
+    zoned = ["2026-11-28T08:12:28+01:00", "2026-11-28T07:12:29Z", "2026-11-28 07:12:30-0000"]
+    np.testing.assert_array_equal(
+        read_clock(zoned), since_1970("2026-11-28T07:12:28") + np.array([0.0, 1, 2])
+    )
+    # times of day: past midnight the next day's; a step back of less than 12 h is not
+    np.testing.assert_array_equal(
+        read_clock(["23:59:50", "", "00:00:10.5", "0:01", "13:00"]),
+        [86390, np.nan, 86410.5, 86460, 86400 + 13 * 3600],
+    )
+    assert read_clock(["10:00", "09:00"])[1] == 9 * 3600  # going back: `time_goes_back`'s
+    for cells, row, message in (
+        (["12:00", "5"], 2, r"'5' is a number of seconds, row 1 \('12:00'\) a time of day"),
+        (["2026-11-28T08:12Z", "2026-11-28T08:13"], 2, "does not state its time zone"),
+        (["11/28/2026 08:00"], 1, "day or month first"),
+        (["100", "2026-13-01"], 2, "'2026-13-01' is not a time"),
+        (["25:00"], 1, "'25:00' is not a time"),
+        (["1,5"], 1, "a decimal comma"),
+        (["inf"], 1, "'inf' is not a time"),
+    ):
+        with pytest.raises(ClockError, match=message) as err:
+            read_clock(cells)
+        assert err.value.row == row
 
 
 def test_a_time_column_is_read_kept_and_checked(tmp_path, sessions):
@@ -135,8 +195,8 @@ def test_a_time_column_is_read_kept_and_checked(tmp_path, sessions):
     text = path.read_text().splitlines()
     k = text[0].split(",").index("time")
     for row, cell, message in (
-        (7, "100.0", r"row 7, column 'time': the clock goes back"),
-        (7, "12:03:05", r"row 7, column 'time': '12:03:05' is not a number \(the clock in s"),
+        (7, "100.0", r"row 7, column 'time': the clock goes back to '100.0' within a session"),
+        (7, "12:03:05", r"row 7, column 'time': '12:03:05' is a time of day, row 1 \('0.25'\)"),
     ):
         lines = [line.split(",") for line in text]
         lines[row][k] = cell
@@ -144,6 +204,48 @@ def test_a_time_column_is_read_kept_and_checked(tmp_path, sessions):
         bad.write_text("\n".join(",".join(line) for line in lines) + "\n")
         with pytest.raises(jt.DataFileError, match=message):
             jt.load_measurements(bad)
+        assert bad.read_text() == "\n".join(",".join(line) for line in lines) + "\n"
+    # a logger's date-times: the same clock, in seconds since 1970
+    start = np.datetime64("2026-11-28T23:40:00", "ms")
+    lines = [line.split(",") for line in text]
+    for r in range(1, len(lines)):
+        if np.isfinite(clock[r - 1]):
+            stamp = start + np.timedelta64(int(1000 * clock[r - 1]), "ms")
+            lines[r][k] = str(stamp)
+    stamped = tmp_path / "stamped.csv"
+    stamped.write_text("\n".join(",".join(line) for line in lines) + "\n")
+    read = jt.load_measurements(stamped).time
+    assert lines[1][k] == "2026-11-28T23:40:00.250" and np.isnan(read[4])
+    np.testing.assert_allclose(read - read[0], clock - clock[0], rtol=0, atol=1e-6)
+
+
+def test_sessions_logged_on_their_own_clocks(tmp_path, sessions):
+    """Two tracker set-ups, each logging seconds from its own start: the clock starts again
+    where the session label changes, and the runs are put end to end; the drift term's
+    clock is the one a single clock with that gap gives, and the report says so. Going back
+    within a session is still refused, naming the row."""
+    _, a, b, _ = sessions
+    both = concat(a, b)
+    own = np.concatenate([30.0 * np.arange(len(a)), 30.0 * np.arange(len(b))])
+    one = np.concatenate([30.0 * np.arange(len(a)), 30.0 * np.arange(len(b)) + 30.0 * len(a)])
+    path = tmp_path / "own.csv"
+    jt.save_measurements(dataclasses.replace(both, time=own), path)
+    data = jt.load_measurements(path)
+    np.testing.assert_array_equal(data.time, own)
+    np.testing.assert_allclose(run_time(len(data), data.time, data.session_index),
+                               one / one[-1], rtol=0, atol=1e-15)  # fmt: skip
+    words = data.clock_words()
+    assert "starts again with a new session 1×: the runs put end to end" in words, words
+    assert words.startswith(f"the `time` column, {30 * (len(both) - 2) / 60:.3g} min"), words
+    assert dataclasses.replace(both, time=one).clock_words().startswith("the `time` column")
+    assert both.clock_words() == "the row order"
+    text = path.read_text().splitlines()
+    k = text[0].split(",").index("time")
+    lines = [line.split(",") for line in text]
+    lines[len(a) + 3][k] = "0.0"  # back within the second session
+    path.write_text("\n".join(",".join(line) for line in lines) + "\n")
+    with pytest.raises(jt.DataFileError, match=rf"row {len(a) + 3}, column 'time': the clock"):
+        jt.load_measurements(path)
 
 
 def test_a_pause_in_the_log_is_a_pause_in_the_drift(table):

@@ -24,10 +24,12 @@ from jaxtable import _params as params
 from jaxtable._calibration.fit import fit, setup
 from jaxtable._calibration.instruments import Instrument, tracker6
 from jaxtable._calibration.simulate import perturb_table, plan_random, simulate
+from jaxtable._context import run_time
 from jaxtable._discovery.diagnose import discovery_setup
 from jaxtable._discovery.dictionary import Bases, candidates, screen
 from jaxtable._discovery.structure import (
     agreements,
+    clock_rows,
     features,
     neighbours,
     null_law,
@@ -269,3 +271,16 @@ def test_agreement_is_the_neighbour_sum_written_out():
     ]
     np.testing.assert_allclose(_agreement(e, nn), by_hand, rtol=1e-12)
     np.testing.assert_allclose(_agreement(e[2], nn), by_hand[2], rtol=1e-12)
+
+
+def test_neighbours_in_time_are_neighbours_on_the_log_s_clock():
+    """Six stops, three then three after a pause: on the clock the stop before the pause has
+    its two predecessors as neighbours, in row order the one after the pause; without a
+    clock the time feature is the row index itself (equal steps tie exactly)."""
+    clock = run_time(6, [0.0, 60, 120, 3000, 3060, 3120])
+    rows = np.arange(6)
+    near = neighbours(clock_rows(clock)[:, None], 2, rows)
+    assert sorted(near[2]) == [0, 1] and sorted(near[3]) == [4, 5]
+    ordered = clock_rows(run_time(6))
+    np.testing.assert_array_equal(ordered, rows)
+    assert sorted(neighbours(ordered[:, None], 2, rows)[2]) == [1, 3]

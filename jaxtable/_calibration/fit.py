@@ -1114,7 +1114,7 @@ def data_context(data: Measurements, cmd: np.ndarray, uses=("temperature", "mass
         values["temperature"],
         values["mass"],
         np.asarray(data.session_index),
-        run_time(len(cmd), data.time),
+        run_time(len(cmd), data.time, data.session_index),
     )
 
 

@@ -3,8 +3,9 @@
 Schema (DESIGN.md): `cmd_x … cmd_yaw` commanded pose (mm / deg, required); `cmd_l1 … cmd_l6`
 commanded joint-to-joint lengths (optional); `x, y, z, roll, pitch, yaw` measured pose (any
 subset; empty or NaN = not measured); `sigma_<column>` per-row standard deviation (optional);
-`temperature` (°C), `payload` (kg), `session` (label) optional; a blank session cell
-continues the session of the row before it. Unknown columns are kept and
+`temperature` (°C), `payload` (kg), `time` (seconds, a date and time or a time of day:
+`clock.py`), `session` (label) optional; a blank session cell continues the session of the
+row before it. Unknown columns are kept and
 written back unchanged. Angles are degrees in the file and radians in memory.
 """
 
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._context import time_goes_back
 from .._errors import POSE_COLUMNS
 from .._io import read_delimited
 from .._params import pose_from_file, pose_to_file
@@ -25,6 +27,7 @@ from .._rotation import (
     euler_matrices,
     rotation_log,
 )
+from .clock import ClockError, read_clock
 
 CMD = tuple(f"cmd_{c}" for c in POSE_COLUMNS)
 CMD_L = tuple(f"cmd_l{i}" for i in range(1, 7))
@@ -88,6 +91,23 @@ class Measurements:
         order = {s: k for k, s in enumerate(self.sessions)}
         return np.array([order[s] for s in self.session])
 
+    def clock_words(self) -> str:
+        """The clock the drift term `t` runs over, in words for reports: the `time` column
+        (its span, and how often it starts again with a new session) or the row order."""
+        t = None if self.time is None else np.asarray(self.time, float)
+        ok = np.array([]) if t is None else t[np.isfinite(t)]
+        if len(ok) < 2 or ok.max() == ok.min():
+            return "the row order" + ("" if t is None else " (the `time` column does not move)")
+        step = np.diff(ok)
+        words = f"the `time` column, {_duration(step[step > 0].sum())} of readings"
+        restarts = int(np.sum(step < 0))
+        if restarts:
+            words += (
+                f"; it starts again with a new session {restarts}×: the runs put end to end, "
+                "one typical step apart"
+            )
+        return words
+
     @property
     def direction(self) -> np.ndarray:
         """(N, 6) ±1: +1 if the leg last moved out (extending), −1 if in, from the row order
@@ -132,8 +152,7 @@ def _cell(value: str, row: int, col: str, path, required: bool) -> float:
             float(v.replace(",", "."))
             hint = " (a decimal comma: write numbers with a decimal point)"
         except ValueError:
-            if col == "time":
-                hint = " (the clock in seconds; rename the column to keep it unused)"
+            pass
         raise DataFileError(
             f"{path}: row {row}, column '{col}': '{value}' is not a number{hint}"
         ) from None
@@ -143,6 +162,14 @@ def _cell(value: str, row: int, col: str, path, required: bool) -> float:
             + ("" if required else " (an empty cell or NaN marks a value not measured)")
         )
     return x
+
+
+def _duration(seconds: float) -> str:
+    """A span of time in words: "45 s", "12.5 min", "3.1 h", "4.2 days"."""
+    for unit, size, limit in (("s", 1, 120), ("min", 60, 7200), ("h", 3600, 172800)):
+        if seconds < limit:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds / 86400:.3g} days"
 
 
 def _plain_name(h: str) -> str:
@@ -253,18 +280,23 @@ def load_measurements(path) -> Measurements:
                 "standard deviation must be positive; leave the cell empty where σ is not "
                 "known: the column's other σ are taken for it)"
             )
-    opt = {c: numeric(c, False) if c in col else None for c in OPTIONAL}
-    if opt["time"] is not None:
-        from .._context import time_goes_back
-
-        back = time_goes_back(opt["time"])
+    opt = {c: numeric(c, False) if c in col else None for c in OPTIONAL if c != "time"}
+    session = _sessions([rows[r][col["session"]] for r in range(n)]) if "session" in col else None
+    opt["time"] = None
+    if "time" in col:
+        cells = [rows[r][col["time"]] for r in range(n)]
+        try:
+            opt["time"] = read_clock(cells)
+        except ClockError as e:
+            raise DataFileError(f"{path}: row {e.row}, column 'time': {e}") from None
+        back = time_goes_back(opt["time"], session)
         if back is not None:
             raise DataFileError(
-                f"{path}: row {back + 1}, column 'time': the clock goes back (rows are in the "
-                "order the table moved; sessions logged on their own clocks need one clock, "
-                "e.g. seconds since the first began, or rename the column to keep it unused)"
+                f"{path}: row {back + 1}, column 'time': the clock goes back to "
+                f"'{cells[back].strip()}' within a session (rows are in the order the table "
+                "moved; a clock may start again only where the `session` label changes); "
+                "or rename the column to keep it unused"
             )
-    session = _sessions([rows[r][col["session"]] for r in range(n)]) if "session" in col else None
     known = set(CMD + CMD_L + MEASURED + SIGMA + OPTIONAL + ("session",))
     extra = {h: np.array([rows[r][col[h]] for r in range(n)]) for h in header if h not in known}
     return Measurements(

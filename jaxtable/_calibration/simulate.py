@@ -120,7 +120,7 @@ def simulate(
         20.0 if temp is None else temp,
         0.0 if load is None else load,
         index,
-        run_time(n, time),
+        run_time(n, time, index),
     )
     actual = forward(
         true, cmd, effects=effects, nominal=nominal, guess=poses, context=batch_context(n, ctx)

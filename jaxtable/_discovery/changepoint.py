@@ -36,7 +36,7 @@ import numpy as np
 from .._calibration.fit import Calibration, Setup
 from .._calibration.measurements import Measurements
 from .._threads import one_blas_thread
-from .structure import Whitened, whitened
+from .structure import Whitened, clock_rows, whitened
 
 MIN_ROWS = 10  # measured rows a session keeps on each side of a step
 KINDS = ("instrument frame", "leg zeros")
@@ -179,6 +179,7 @@ def _kinds(cal: Calibration, st: Setup, w: Whitened, min_rows: int) -> list:
     U = w.U.reshape(n, 6, -1)
     session = np.asarray(st.problem.session)
     measured = w.mask.any(axis=1)
+    clock = clock_rows(st.problem.ctx.time)  # a drift is linear in time, across pauses too
     out = []
     for s in np.unique(session[measured]):
         rows = np.flatnonzero((session == s) & measured)
@@ -192,7 +193,7 @@ def _kinds(cal: Calibration, st: Setup, w: Whitened, min_rows: int) -> list:
             M = tail(np.einsum("ncr,ncq->nrq", U[rows], A))
             G = AA - np.einsum("krq,krp->kqp", M, M)
             Ginv, rank = _pinv_stack(G)
-            t = np.arange(len(rows)) - (len(rows) - 1) / 2.0
+            t = clock[rows] - np.mean(clock[rows])
             R = A * t[:, None, None]
             MR = np.einsum("ncr,ncq->rq", U[rows], R)
             GR = np.einsum("ncq,ncp->qp", R, R) - MR.T @ MR

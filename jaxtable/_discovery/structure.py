@@ -120,12 +120,22 @@ def features(st: Setup) -> dict:
         # a reversal on one leg weighs like two standard deviations of extension
         out["extensions, direction"] = np.concatenate([ext, d], axis=1)
     session = np.asarray(ctx.session)
-    order = np.arange(len(s), dtype=float)
-    out["time"] = np.stack([order, 1e9 * session], axis=1)
+    out["time"] = np.stack([clock_rows(ctx.time), 1e9 * session], axis=1)
     temperature = np.asarray(ctx.temperature, float)
     if np.ptp(temperature) >= 0.5:
         out["temperature"] = temperature[:, None]
     return out
+
+
+def clock_rows(time) -> np.ndarray:
+    """(N,) the stops' time (`Context.time`, 0..1 over the file) in units of the mean step
+    between rows: the row index itself where the time is the row order (no `time` column),
+    so that equal steps tie exactly; the clock's readings where the file logs them, so that
+    stops on either side of a pause are not neighbours."""
+    t = np.asarray(time, float)
+    rows = np.arange(len(t), dtype=float)
+    scaled = t * max(len(t) - 1, 1)
+    return rows if np.allclose(scaled, rows, rtol=0, atol=1e-9) else scaled
 
 
 def neighbours(x: np.ndarray, k: int, rows: np.ndarray) -> np.ndarray:

@@ -228,7 +228,8 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         f"# Diagnosis of {source}",
         "",
         f"{len(diag.data)} rows, measured columns: {', '.join(diag.data.measured_columns)}; "
-        f"sessions: {len(diag.data.sessions)}. Start model: rigid geometry (42 parameters, "
+        f"sessions: {len(diag.data.sessions)}; the drift term `t` runs over "
+        f"{diag.data.clock_words()}. Start model: rigid geometry (42 parameters, "
         "joints modulo the rigid motions the instrument frame absorbs) + instrument frame per "
         "session and target offset.",
         "",
