@@ -235,7 +235,7 @@ def test_sessions_logged_on_their_own_clocks(tmp_path, sessions):
     np.testing.assert_allclose(run_time(len(data), data.time, data.session_index),
                                one / one[-1], rtol=0, atol=1e-15)  # fmt: skip
     words = data.clock_words()
-    assert "starts again with a new session 1×: the runs put end to end" in words, words
+    assert "starts again at 1 session change(s) (each run on its own clock)" in words, words
     assert words.startswith(f"the `time` column, {30 * (len(both) - 2) / 60:.3g} min"), words
     assert dataclasses.replace(both, time=one).clock_words().startswith("the `time` column")
     assert both.clock_words() == "the row order"

@@ -103,8 +103,8 @@ class Measurements:
         restarts = int(np.sum(step < 0))
         if restarts:
             words += (
-                f"; it starts again with a new session {restarts}×: the runs put end to end, "
-                "one typical step apart"
+                f"; the clock starts again at {restarts} session change(s) (each run on its "
+                "own clock): the runs are put end to end, one typical step apart"
             )
         return words
 
