@@ -393,6 +393,8 @@ def _validate(args) -> int:
         + ", ".join(f"{c} {r:.4g}" for c, r in v.rms.items())
         + ("" if v.leg_rms is None else f"; legs {v.leg_rms:.4g} mm")
     )
+    if v.noise_ratio:
+        print(v.noise_words())
     print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0
 

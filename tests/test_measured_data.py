@@ -1096,6 +1096,71 @@ def test_model_file_round_trip(table, sessions, tmp_path):
         np.asarray(back.table.base_joints), np.asarray(cal.table.base_joints)
     )
     assert jt.load_table(path).name == table.name  # any verb's --table reads it
+    # the noise the fit found, per column: its group's σ (mm / rad), and the mean leverage
+    # of the column's readings, whose sum over readings is the trace of the hat matrix: the
+    # number of parameters the fit determined
+    ins = back.instrument
+    np.testing.assert_allclose(ins.noise, np.repeat(cal.noise.sigma, 3), rtol=1e-12)
+    np.testing.assert_allclose(ins.noise_std, np.repeat(cal.noise.sigma_std, 3), rtol=1e-12)
+    assert np.sum(ins.noise_leverage * len(a)) == pytest.approx(cal.rank, rel=1e-9)
+    lines = path.read_text().splitlines()
+    assert sum(x.startswith("noise") for x in lines) == 3
+    old = "\n".join(x for x in lines if not x.startswith("noise"))  # a file from before
+    assert np.isnan(jt.load_fitted_model(_written(tmp_path, old)).instrument.noise).all()
+
+
+def _written(tmp_path, text):
+    path = tmp_path / "written.toml"
+    path.write_text(text)
+    return path
+
+
+def test_validate_says_whether_new_stops_are_predicted_to_the_noise(table, sessions):
+    """Day 2 with the tracker as the fit left it (session A's stored frame), 60 new stops:
+    the table as fitted predicts them at the ratio a model that holds gives (√(1 + mean
+    leverage), not 1: the fit's parameter error is in every new stop), below the bound;
+    a table whose leg 3 zero moved 25 µm since (5× the tracker's σ) is above it, named."""
+    true, a, _, cal = sessions
+    model = jt.fitted_model(cal, table, a.sessions)
+    day2 = jt.simulate(table, true, jt.plan_random(60, 9), jt.tracker6(), frame=FRAME_A,
+                       target=TARGET, session="A", seed=9)  # fmt: skip
+    v = jt.validate(model, day2)
+    for g, (ratio, expected, bound) in v.noise_groups.items():
+        assert ratio < bound, (g, ratio, expected, bound)
+        assert 1.02 < expected < 1.2  # 48 parameters over 80 stops' 480 readings
+    assert "within the noise the model's fit found" in v.noise_words()
+    zeros = np.asarray(true.zero_lengths).copy()
+    zeros[2] += 0.025
+    moved = jt.replace(true, zero_lengths=zeros)
+    day2 = jt.simulate(table, moved, jt.plan_random(60, 9), jt.tracker6(), frame=FRAME_A,
+                       target=TARGET, session="A", seed=9)  # fmt: skip
+    v = jt.validate(model, day2)
+    ratio, _, bound = v.noise_groups["positions"]
+    assert ratio > bound, v.noise_groups
+    assert "errs by more than the instrument's noise on the positions" in v.noise_words()
+
+
+@pytest.mark.slow
+def test_the_validation_bound_s_false_alarm_rate_over_200_tables(table):
+    """200 tables, each fitted on 80 stops and predicted on 60 new ones with the stored
+    frame: a model that holds goes above the bound (≥ 99.9 % for each of the two groups)
+    in at most 2 of 200 (0 measured, the largest ratio 0.95 of its bound; at a 0.2 % rate
+    3 or more come in 1 %). The mean log(ratio / expected) is within ±0.03 (0.004
+    measured, standard error 0.0055): a ratio expected at 1, leaving out the fit's
+    parameter error, is off by 0.049."""
+    above, logs = 0, []
+    for k in range(200):
+        true = jt.perturb_table(table, 100 + k)
+        a = jt.simulate(table, true, jt.plan_random(80, 200 + k), jt.tracker6(),
+                        frame=FRAME_A, session="A", seed=300 + k)  # fmt: skip
+        day2 = jt.simulate(table, true, jt.plan_random(60, 400 + k), jt.tracker6(),
+                           frame=FRAME_A, session="A", seed=500 + k)  # fmt: skip
+        cal = jt.calibrate(table, a)
+        groups = jt.validate(jt.fitted_model(cal, table, a.sessions), day2).noise_groups
+        above += any(r > b for r, _, b in groups.values())
+        logs.append([np.log(r / e) for r, e, _ in groups.values()])
+    assert above <= 2, above
+    np.testing.assert_array_less(np.abs(np.mean(logs, axis=0)), 0.03)
 
 
 def test_frame_registration_recovers_a_known_frame_with_rows_padded(table, monkeypatch):
@@ -1165,6 +1230,8 @@ def test_validate_cli_writes_json_report_and_figures(table, sessions, tmp_path):
     assert code == 0
     doc = json.loads((tmp_path / "v.json").read_text())
     assert {"rows_registered", "rows_predicted", "rms", "leg_rms", "frames"} <= set(doc)
+    assert set(doc["rms_over_noise"]) == set("xyz") | {"roll", "pitch", "yaw"}
+    assert set(doc["rms_over_noise_groups"]["angles"]) == {"ratio", "expected", "bound"}
     assert doc["rows_registered"] == 10 and doc["rows_predicted"] == 50
     for name in ("report.md", "residuals_by_stop.png", "residuals_by_pose.png"):
         assert (out / name).stat().st_size > 0

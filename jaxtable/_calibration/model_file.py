@@ -11,6 +11,9 @@ It is a table file (DESIGN.md schema) with three more kinds of table:
     [instrument]
     target = [x, y, z, roll, pitch, yaw]        target offset on the platform (mm / deg)
     target_sigma = [...]                        its σ (nan: not estimated, inf: undetermined)
+    noise = [σx, σy, σz, σroll, σpitch, σyaw]   the noise σ the fit found per measured
+    noise_std = [...]                           column (mm / deg; nan: not measured), its σ,
+    noise_leverage = [...]                      and the share of the readings the fit took
     [instrument.frames."LABEL"]                 one per session label
     pose = [x, y, z, roll, pitch, yaw]          pose of the base frame in the instrument frame
     sigma = [...]
@@ -45,6 +48,14 @@ class InstrumentFrames:
     target_sigma: np.ndarray
     frames: dict = field(default_factory=dict)
     frame_sigma: dict = field(default_factory=dict)
+    # (6,) the noise σ the fit found per measured column (mm / rad: its group's σ, the
+    # median where a column is in several groups) and that σ's standard deviation; NaN for
+    # a column not measured, or a file written before they were kept
+    noise: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
+    noise_std: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
+    # (6,) the mean leverage H_ii of the column's readings in the fit (the share of them its
+    # parameters took): new stops like the fit's are predicted at about σ √(1 + leverage)
+    noise_leverage: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
 
 
 @dataclass
@@ -80,8 +91,35 @@ def instrument_frames(cal: Calibration, sessions: list[str]) -> InstrumentFrames
     frames = {lab: np.asarray(cal.frame[k], float) for k, lab in enumerate(sessions)}
     frame_sigma = {lab: sigma(f"frame[{k + 1}]", lay.frame_dofs) for k, lab in enumerate(sessions)}
     return InstrumentFrames(
-        np.asarray(cal.target, float), sigma("target", lay.target_dofs), frames, frame_sigma
+        np.asarray(cal.target, float),
+        sigma("target", lay.target_dofs),
+        frames,
+        frame_sigma,
+        *column_noise(cal),
     )
+
+
+def column_noise(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per measured column (6,) each: the σ the fit found (mm / rad: its noise group's σ,
+    the median over the groups where a file's instruments share a column), that σ's
+    standard deviation, and the mean leverage 1 − r_i of the column's readings in the fit;
+    NaN where no group holds the column or the fit has no noise estimate."""
+    est = cal.noise
+    noise, std, lev = np.full(6, np.nan), np.full(6, np.nan), np.full(6, np.nan)
+    if est is None:
+        return noise, std, lev
+    for c in range(6):
+        groups = [g for g, cols in enumerate(est.columns) if c in cols]
+        if groups:
+            noise[c] = np.median(np.asarray(est.sigma, float)[groups])
+            std[c] = np.median(np.asarray(est.sigma_std, float)[groups])
+    if cal.redundancy is not None and cal.weight is not None:
+        used = np.asarray(cal.weight) > 0
+        r = np.asarray(cal.redundancy, float).reshape(-1, 6)
+        n = used.sum(axis=0)
+        lev = np.where(n > 0, np.sum(np.where(used, 1 - r, 0), axis=0) / np.maximum(n, 1), np.nan)
+        lev = np.where(np.isfinite(noise), lev, np.nan)
+    return noise, std, lev
 
 
 def fitted_model(cal: Calibration, nominal: Table, sessions: list[str]) -> FittedModel:
@@ -107,6 +145,10 @@ def model_to_toml(model: FittedModel, header: str = "") -> str:
         text += "\n[instrument]\n"
         text += f"target = {toml_value(params.pose_to_file(ins.target))}\n"
         text += f"target_sigma = {toml_value(params.pose_to_file(ins.target_sigma))}\n"
+        if np.isfinite(ins.noise).any():
+            text += f"noise = {toml_value(params.pose_to_file(ins.noise))}\n"
+            text += f"noise_std = {toml_value(params.pose_to_file(ins.noise_std))}\n"
+            text += f"noise_leverage = {toml_value(ins.noise_leverage)}\n"
         for label, pose in ins.frames.items():
             key = label.replace("\\", "\\\\").replace('"', '\\"')
             text += f'\n[instrument.frames."{key}"]\n'
@@ -163,5 +205,13 @@ def load_fitted_model(path) -> FittedModel:
             sigmas[str(label)] = vec(fr, "sigma", fw, np.full(6, np.nan))
         target = vec(sec, "target", w, np.zeros(6))
         tsig = vec(sec, "target_sigma", w, np.full(6, np.nan))
-        instrument = InstrumentFrames(target, tsig, frames, sigmas)
+        noise = vec(sec, "noise", w, np.full(6, np.nan))
+        noise_std = vec(sec, "noise_std", w, np.full(6, np.nan))
+        lev = _vector(sec, "noise_leverage", w) if "noise_leverage" in sec else np.full(6, np.nan)
+        if np.any(noise <= 0) or np.any(noise_std < 0) or np.any((lev < 0) | (lev > 1)):
+            raise TableFileError(
+                f"{w}: 'noise' must be positive, 'noise_std' not negative, 'noise_leverage' "
+                "within 0..1"
+            )
+        instrument = InstrumentFrames(target, tsig, frames, sigmas, noise, noise_std, lev)
     return FittedModel(table, effects, instrument, nominal)

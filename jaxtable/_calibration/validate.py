@@ -64,7 +64,20 @@ class Validation:
       roll, pitch, yaw deg], "rows_registered": n}};
     - `residual` (N, 6): measured − predicted reading (mm / rad, NaN where not measured);
       `leg_residual` (N, 6) mm or None; `predicted_pose` (N, 6): the model's pose per stop;
-    - `is_prediction`: False when every row was used to register a frame (a fit).
+    - `is_prediction`: False when every row was used to register a frame (a fit);
+    - `noise_ratio`: {column: RMS / the noise σ the fit found for that column (the model
+      file's `[instrument] noise`)} over the scored rows; `noise_groups`: {"positions" |
+      "angles": (ratio, expected, bound)}: the same over the group's readings (each over
+      its column's σ), the ratio expected of a model that holds at stops like the fit's
+      (√(1 + h), h the mean leverage of the fit's readings: a new stop's error holds the
+      fit's parameter error too), and the bound a model that holds stays below with at
+      least 99.9 % (log ratio normal with variance 1/(2n) for n readings, plus the fitted
+      σ's relative variance, plus (h / (1 + h))² / 2 for the parameter error's share, which
+      varies with the error the fit drew: its largest variance, one direction carrying it;
+      measured over 200 tables, `tests/test_measured_data.py`). A ratio above the bound:
+      the model errs by more than the noise (an effect it lacks, or a table that changed
+      since the fit). On the fit's own rows the ratio is below 1 by the same share. Both
+      empty for a model file without the noise.
     """
 
     rows_registered: int
@@ -77,10 +90,32 @@ class Validation:
     leg_residual: np.ndarray | None
     predicted_pose: np.ndarray
     data: Measurements = field(repr=False, default=None)
+    noise_ratio: dict = field(default_factory=dict)
+    noise_groups: dict = field(default_factory=dict)
 
     @property
     def is_prediction(self) -> bool:
         return self.rows_predicted > 0
+
+    def noise_words(self) -> str:
+        """The RMS against the fit's noise, by group, with the verdict."""
+        if not self.noise_groups:
+            return ""
+        parts = ", ".join(
+            f"{g} {r:.3g} (a model that holds: {e:.2f}, below {b:.2f})"
+            for g, (r, e, b) in self.noise_groups.items()
+        )
+        above = [g for g, (r, e, b) in self.noise_groups.items() if r > b]
+        what = "prediction" if self.is_prediction else "fit"
+        if above:
+            verdict = (
+                f"the model's {what} errs by more than the instrument's noise on the "
+                f"{' and '.join(above)} (an effect the model lacks, or a table that changed "
+                "since the fit)"
+            )
+        else:
+            verdict = f"the {what} is within the noise the model's fit found"
+        return f"RMS / the noise σ of the model's fit: {parts}: {verdict}"
 
     def as_json(self) -> dict:
         return {
@@ -91,6 +126,11 @@ class Validation:
             "rms_units": {c: ("mm" if c in params.XYZ else "deg") for c in self.rms},
             "leg_rms": self.leg_rms,
             "frames": self.frames,
+            "rms_over_noise": self.noise_ratio,
+            "rms_over_noise_groups": {
+                g: {"ratio": r, "expected": e, "bound": b}
+                for g, (r, e, b) in self.noise_groups.items()
+            },
         }
 
 
@@ -227,6 +267,7 @@ def validate_model(
         for k, c in enumerate(params.POSE)
         if mask[scored, k].any()
     }
+    ratio, groups = _noise_ratio(residual[scored], ins)
     leg_residual = leg_rms = None
     if mask[scored].all():
         full = mask.all(axis=1)
@@ -249,7 +290,47 @@ def validate_model(
         leg_residual=leg_residual,
         predicted_pose=q,
         data=data,
+        noise_ratio=ratio,
+        noise_groups=groups,
     )
+
+
+BOUND_Z = 3.09  # one-sided 99.9 % of a normal: `Validation.noise_groups`' bound
+
+
+def _noise_ratio(residual: np.ndarray, ins) -> tuple[dict, dict]:
+    """({column: RMS / noise σ}, {group: (ratio, expected, bound)}) of residuals (M, 6) (mm / rad,
+    NaN where not measured), for the columns whose noise `ins` holds (`Validation`)."""
+    if ins is None:
+        return {}, {}
+    sigma, sd = np.asarray(ins.noise, float), np.asarray(ins.noise_std, float)
+    lev = np.asarray(ins.noise_leverage, float)
+    z = residual / sigma  # NaN where not measured or no σ
+    ratio = {
+        c: float(np.sqrt(np.nanmean(z[:, k] ** 2)))
+        for k, c in enumerate(params.POSE)
+        if np.isfinite(z[:, k]).any()
+    }
+    groups = {}
+    for g, cols in (("positions", [0, 1, 2]), ("angles", [3, 4, 5])):
+        zg = z[:, cols]
+        n = int(np.isfinite(zg).sum())
+        if n == 0:
+            continue
+        has = [c for c in cols if np.isfinite(z[:, c]).any()]
+        rel = np.median(np.nan_to_num(sd[has] / sigma[has]))  # the fitted σ's own spread
+        # a new stop's error holds the fit's parameter error too: E[e²] ≈ σ² (1 + leverage);
+        # its share of new stops' mean e² varies with the error the fit drew, by up to
+        # √2 · leverage (one parameter direction carrying it all, a χ² of 1 dof)
+        h = np.median(np.nan_to_num(lev[has]))
+        expected = np.sqrt(1 + h)
+        spread = np.sqrt(1 / (2 * n) + rel**2 + (h / (1 + h)) ** 2 / 2)
+        groups[g] = (
+            float(np.sqrt(np.nanmean(zg**2))),
+            float(expected),
+            float(expected * np.exp(BOUND_Z * spread)),
+        )
+    return ratio, groups
 
 
 @one_blas_thread

@@ -73,12 +73,19 @@ def markdown(v: Validation, model_source: str, data_source: str, figures) -> str
         f"Result: **{kind}**. Rows used to register a new session's frame: "
         f"{v.rows_registered}; rows predicted: {v.rows_predicted}.",
         "",
-        "| column | RMS (measured − predicted) |",
-        "|---|---|",
-        *[f"| {c} | {r:.4g} {'mm' if c in params.XYZ else 'deg'} |" for c, r in v.rms.items()],
+        "| column | RMS (measured − predicted) | RMS / the fit's noise σ |",
+        "|---|---|---|",
+        *[
+            f"| {c} | {r:.4g} {'mm' if c in params.XYZ else 'deg'} | "
+            + (f"{v.noise_ratio[c]:.3g}" if c in v.noise_ratio else "not in the model file")
+            + " |"
+            for c, r in v.rms.items()
+        ],
     ]
     if v.leg_rms is not None:
-        lines.append(f"| leg lengths (implied − model) | {v.leg_rms:.4g} mm |")
+        lines.append(f"| leg lengths (implied − model) | {v.leg_rms:.4g} mm | |")
+    if v.noise_ratio:
+        lines += ["", v.noise_words() + "."]
     lines += ["", "Instrument frames (pose of the base frame in the instrument frame):", ""]
     for label, f in v.frames.items():
         pose = ", ".join(
