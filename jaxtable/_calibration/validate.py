@@ -76,8 +76,10 @@ class Validation:
       varies with the error the fit drew: its largest variance, one direction carrying it;
       measured over 200 tables, `tests/test_measured_data.py`). A ratio above the bound:
       the model errs by more than the noise (an effect it lacks, or a table that changed
-      since the fit). On the fit's own rows the ratio is below 1 by the same share. Both
-      empty for a model file without the noise.
+      since the fit). A new session's frame registered on m readings with p degrees of
+      freedom adds p / m to h for the rows predicted through it (its error is in each);
+      on the rows it was registered on, and on the fit's own rows, the ratio is below
+      √(1 + h) by the share the fit took. Both empty for a model file without the noise.
     """
 
     rows_registered: int
@@ -228,6 +230,9 @@ def validate_model(
     mask = np.isfinite(measured)
     n = len(data)
     frames = np.zeros((n, 6))
+    # per row: the mean leverage of its session's frame registration, p dofs over m
+    # readings (`_noise_ratio`: the frame's error is in every row predicted through it)
+    frame_leverage = np.zeros(n)
     registered = np.zeros(n, bool)
     info = {}
     radius = float(platform_radius(table))
@@ -247,6 +252,7 @@ def validate_model(
             start = initial_frames(sub, dofs, predicted=base_reading[use])[0]
             frame = register_frame(q[use], measured[use], target, dofs, start, radius)
             registered[use] = True
+            frame_leverage[rows] = len(list(dofs)) / mask[use].sum()
             info[label] = {"source": "registered", "rows_registered": int(len(use))}
         frames[rows] = frame
         info[label]["pose"] = [float(v) for v in params.pose_to_file(frame)]
@@ -267,7 +273,9 @@ def validate_model(
         for k, c in enumerate(params.POSE)
         if mask[scored, k].any()
     }
-    ratio, groups = _noise_ratio(residual[scored], ins)
+    # a registration row's own residual is smaller by its share: in-sample
+    share = np.where(registered, -frame_leverage, frame_leverage)
+    ratio, groups = _noise_ratio(residual[scored], ins, share[scored])
     leg_residual = leg_rms = None
     if mask[scored].all():
         full = mask.all(axis=1)
@@ -298,11 +306,16 @@ def validate_model(
 BOUND_Z = 3.09  # one-sided 99.9 % of a normal: `Validation.noise_groups`' bound
 
 
-def _noise_ratio(residual: np.ndarray, ins) -> tuple[dict, dict]:
-    """({column: RMS / noise σ}, {group: (ratio, expected, bound)}) of residuals (M, 6) (mm / rad,
-    NaN where not measured), for the columns whose noise `ins` holds (`Validation`)."""
+def _noise_ratio(residual: np.ndarray, ins, frame_share=None) -> tuple[dict, dict]:
+    """({column: RMS / noise σ}, {group: (ratio, expected, bound)}) of residuals (M, 6)
+    (mm / rad, NaN where not measured), for the columns whose noise `ins` holds
+    (`Validation`). `frame_share` (M,): the leverage a registered frame adds to each row's
+    expected e² / σ² (p / m for a row predicted through a frame registered with p degrees
+    of freedom on m readings, −p / m for a row of the registration itself; 0 for a stored
+    frame)."""
     if ins is None:
         return {}, {}
+    frame_share = None if frame_share is None else np.asarray(frame_share, float)
     sigma, sd = np.asarray(ins.noise, float), np.asarray(ins.noise_std, float)
     lev = np.asarray(ins.noise_leverage, float)
     z = residual / sigma  # NaN where not measured or no σ
@@ -322,8 +335,11 @@ def _noise_ratio(residual: np.ndarray, ins) -> tuple[dict, dict]:
         # a new stop's error holds the fit's parameter error too: E[e²] ≈ σ² (1 + leverage);
         # its share of new stops' mean e² varies with the error the fit drew, by up to
         # √2 · leverage (one parameter direction carrying it all, a χ² of 1 dof)
+        rows = np.isfinite(zg).any(axis=1)
+        share = np.zeros(int(rows.sum())) if frame_share is None else frame_share[rows]
         h = np.median(np.nan_to_num(lev[has]))
-        expected = np.sqrt(1 + h)
+        expected = np.sqrt(max(1 + h + float(np.mean(share)), 0.05))
+        h = h + float(np.mean(np.abs(share)))  # every error share, for the spread
         spread = np.sqrt(1 / (2 * n) + rel**2 + (h / (1 + h)) ** 2 / 2)
         groups[g] = (
             float(np.sqrt(np.nanmean(zg**2))),
