@@ -44,6 +44,7 @@ STUDIES = {
     "discovery_power": ([], ["discovery_power.md", "discovery_power.png"]),
     "discovery_null": ([], ["discovery_null.md"]),
     "discovery_baselines": ([], ["discovery_baselines.md", "discovery_baselines.png"]),
+    "validation_power": ([], ["validation_power.md", "validation_power.png"]),
     "design_tradeoffs": (
         [],
         ["design_tradeoffs.md", "design_lead.png", "design_geometry_maps.png"],
