@@ -135,9 +135,10 @@ def euler_rate_inverse(angles: Float[ArrayLike, "3"]) -> Float[ArrayLike, "3 3"]
     )
 
 
-def euler_from_matrix(R: Float[ArrayLike, "3 3"]) -> Float[ArrayLike, "3"]:
+def euler_from_matrix(R: Float[ArrayLike, "3 3 ..."]) -> Float[ArrayLike, "3 ..."]:
     """(roll, pitch, yaw) of R = Rz(yaw) Ry(pitch) Rx(roll), rad, shape (3,); the inverse of
-    `rotation_matrix` for pitch in (−π/2, π/2). numpy in, numpy out."""
+    `rotation_matrix` for pitch in (−π/2, π/2). Trailing axes batch (R (3, 3, N) -> (3,
+    N)); numpy in, numpy out."""
     xp = np if isinstance(R, np.ndarray) else jnp
     return xp.stack(
         [

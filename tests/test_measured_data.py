@@ -16,9 +16,11 @@ from jaxtable import _params as params
 from jaxtable._calibration.clock import ClockError, read_clock
 from jaxtable._calibration.fit import initial_frames, nuisance_dofs
 from jaxtable._calibration.noise import noise_model, parse_sigma, unit_hint
+from jaxtable._calibration.outliers import _registration_residual, blunders, without
 from jaxtable._calibration.simulate import concat
 from jaxtable._context import run_time
 from jaxtable._effects import Discovered
+from jaxtable._errors import POSE_COLUMNS
 from jaxtable.cli import main
 
 POS_SIGMA, ANG_SIGMA = 0.005, np.deg2rad(2.0 / 3600.0)  # the tracker6 default
@@ -865,6 +867,55 @@ def test_readings_set_aside_do_not_make_an_instrument(table, sessions):
     assert abs(cal.noise.sigma[0] / POS_SIGMA - 1) < 0.15, cal.noise.sigma
 
 
+def test_a_tracker_that_lost_its_target_logs_readings_no_table_could_produce(table, sessions):
+    """Rows a tracker logged without its target: row 13 all zeros, row 41 all −9999, row 78
+    the reading before repeated (stale), and row 31's y alone 0. Before any fit they are set
+    aside (off the commanded pose by far more than 5 mm / 0.5°; a reading of a small angle
+    goes with the rest of its row), and the fit is the one of the file without them, to
+    1e-9 of a parameter's σ, at the tracker's noise. Kept, they move a parameter by more
+    than 10 σ of the clean fit; and
+    before this screen the structure they left stopped the gross-error screen, so that
+    `calibrate` fitted them (σ estimated at millimetres). `diagnose` sets them aside too."""
+    _, a, _, clean = sessions
+    m = a.measured.copy()
+    m[12], m[40], m[77], m[30, 1] = 0.0, -9999.0, m[76], 0.0
+    bad = dataclasses.replace(a, measured=m)
+    cells = {(r, c) for r in (12, 40, 77) for c in range(6)} | {(30, 1)}
+    cal = jt.calibrate(table, bad)
+    assert {(g.row - 1, POSE_COLUMNS.index(g.column)) for g in cal.set_aside} == cells
+    ref = jt.calibrate(table, without(a, sorted(cells)), outliers="keep")
+    ok = np.isfinite(ref.std) & (ref.std > 0)
+    np.testing.assert_array_less(np.abs(cal.value - ref.value)[ok] / ref.std[ok], 1e-9)
+    assert cal.noise.sigma[0] < 1.5 * POS_SIGMA
+    assert _moved(jt.calibrate(table, bad, outliers="keep"), clean) > 10
+    diag = jt.diagnose(table, bad, library=[], discover=False, log=lambda _: None)
+    assert {(g.row - 1, POSE_COLUMNS.index(g.column)) for g in diag.set_aside} >= cells
+
+
+def test_no_reading_of_a_clean_file_is_a_blunder(table):
+    """30 clean 6-D tracker runs (fresh tables, plans, noise), read through frames metres
+    away and turned, with the target 150 mm off the platform origin, the controller not
+    compensating the spiral term: the robust registration (frame and target) leaves each
+    reading within a millimetre, and none is set aside. A session where more than a fifth
+    of the readings would be (13 of 60 rows 50 mm and 5.7° off) keeps them all; 11 rows
+    are set aside."""
+    rng = np.random.default_rng(5)
+    for seed in range(30):
+        true = jt.perturb_table(table, 50 + seed)
+        frame = np.r_[rng.uniform(-3000, 3000, 3), rng.uniform(-np.pi, np.pi, 3) * [0.1, 0.1, 1]]
+        target = np.r_[rng.normal(0, 100, 3), 0.0, 0.0, rng.uniform(-np.pi, np.pi)]
+        d = jt.simulate(table, true, jt.plan_random(60, 60 + seed), jt.tracker6(), frame=frame,
+                        target=target, compensated=False, seed=seed)  # fmt: skip
+        r = _registration_residual(d.cmd_pose, d.measured)
+        assert np.abs(r[:, :3]).max() < 1.0 and np.rad2deg(np.abs(r[:, 3:])).max() < 0.1
+        assert blunders(d) == []
+    m = d.measured.copy()
+    m[:13] += [50.0, 50.0, 50.0, 0.1, 0.1, 0.1]  # 13 of 60 rows: 22 % of the readings
+    assert blunders(dataclasses.replace(d, measured=m)) == []
+    m[11:13] = d.measured[11:13]  # 11 rows: 18 %
+    assert len(blunders(dataclasses.replace(d, measured=m))) == 66
+
+
 def _clean_sets_losing_a_reading(table, seeds) -> int:
     true = jt.perturb_table(table, 8)
     lost = 0
@@ -968,7 +1019,6 @@ def test_short_sessions_keep_the_held_out_check(table, tmp_path):
         )  # fmt: skip
         for k in range(20)
     ]
-    from jaxtable._calibration.simulate import concat
 
     diag = jt.diagnose(table, concat(*parts), log=lambda *_: None)
     assert diag.selected_forms[:1] in (["spiral[all]"], ["spiral"]), diag.selected_forms

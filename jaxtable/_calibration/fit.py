@@ -61,7 +61,7 @@ from .noise import (
     screen_groups,
 )
 from .noise import estimate as noise_estimate
-from .outliers import ALPHA, TRIAL_ROUNDS, GrossError, without
+from .outliers import ALPHA, TRIAL_ROUNDS, GrossError, blunders, without
 from .outliers import screen as screen_gross_errors
 from .prior import check as prior_check
 from .prior import weights as prior_weights
@@ -1691,10 +1691,18 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
         st = setup(nominal, d, free, **setup_kw)
         return st, fit(st, **kw)
 
-    st, cal = run(data)
     if outliers == "keep":
-        return st, cal
-    return set_aside_gross_errors(data, st, cal, run, setup_kw.get("compensated"))
+        return run(data)
+    # readings no table could have produced (a tracker that lost its target), before any
+    # fit: they would corrupt it, and the structure they leave stops the screen
+    pre = blunders(data)
+    if pre:
+        data = without(data, pre)
+    st, cal = run(data)
+    st, cal = set_aside_gross_errors(data, st, cal, run, setup_kw.get("compensated"))
+    if pre:
+        cal.set_aside = sorted(pre + list(cal.set_aside), key=lambda g: -abs(g.z))
+    return st, cal
 
 
 OUTLIERS = ("set_aside", "keep")

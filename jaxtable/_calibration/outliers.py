@@ -29,8 +29,14 @@ from statistics import NormalDist
 import numpy as np
 
 from .._errors import POSE_COLUMNS
+from .._rotation import euler_from_matrix, euler_matrices, rotation_log
 from .noise import robust_scales
 
+# readings no table could have produced (`blunders`): off the commanded pose, through the
+# instrument's rigid registration, by more than both of these
+BLUNDER_MM, BLUNDER_DEG = 5.0, 0.5  # mm, degrees: ~10x a rough table's pose errors
+BLUNDER_SCALE = 20.0  # robust σ of the session's registration residuals
+BLUNDER_SHARE = 0.2  # more of a session's readings than this: the model is off, not them
 MIN_REDUNDANCY = 0.05
 ALPHA = 0.01
 ALONE = 2.5  # mean neighbour z (own direction) below which a reading stands alone
@@ -165,3 +171,127 @@ def screen(cal, mask, groups, extensions, session, alpha: float = ALPHA):
         # residual = model − measured; z as measured − model
         return (int(r), int(c), -float(z[r, c])), tested, untested, crowded
     return None, tested, untested, crowded
+
+
+def _rigid(P, Rc, Q, rows):
+    """Instrument frame (R, t) and target offset a (platform frame) with Q ≈ R (P + Rc a) + t
+    over `rows` of P, Q (N, 3), Rc (N, 3, 3): Gauss-Newton on (rotation increment, t, a)
+    from the Kabsch frame with a = 0 (alternating the two converged too slowly: a target
+    150 mm off took tens of rounds)."""
+    from .fit import _kabsch
+
+    P, Q, Rc = P[rows], Q[rows], Rc[rows]
+    R, t = _kabsch(P, Q)
+    a = np.zeros(3)
+    eye = np.broadcast_to(np.eye(3), (len(P), 3, 3))
+    for _ in range(8):
+        X = (P + Rc @ a) @ R.T  # R (P + Rc a), (M, 3)
+        r = (Q - X - t).reshape(-1)
+        skew = np.zeros((len(P), 3, 3))  # −[X]×: the change of R X for a turn ω
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = X[:, 2], -X[:, 1], X[:, 0]
+        skew -= np.swapaxes(skew, 1, 2)
+        J = np.concatenate([skew, eye, R @ Rc], axis=2).reshape(-1, 9)
+        step = np.linalg.lstsq(J, r, rcond=None)[0]
+        w = step[:3]
+        turn = np.eye(3) + np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        U, _, Vt = np.linalg.svd(turn @ R)  # the nearest rotation
+        R = U @ Vt
+        t, a = t + step[3:6], a + step[6:]
+    return R, t, a
+
+
+def _chordal_mean(Rs: np.ndarray) -> np.ndarray:
+    """The rotation nearest the mean of rotations Rs (M, 3, 3), robustly: again over the
+    better half of them, then twice over those within 5× the median angle of those kept."""
+    keep = np.ones(len(Rs), bool)
+    for k in range(4):
+        U, _, Vt = np.linalg.svd(Rs[keep].mean(axis=0))
+        M = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        angle = np.linalg.norm(rotation_log(np.swapaxes(Rs, 1, 2) @ M), axis=1)
+        limit = np.median(angle) if k == 0 else 5 * np.median(angle[keep]) + 1e-12
+        keep = angle <= limit
+    return M
+
+
+def _registration_residual(cmd: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """(N, 6) measured − the commanded poses (N, 6, mm / rad) read through a rigid instrument
+    frame and target offset registered on the rows themselves, robustly (registered again on
+    the better half of the rows, then twice on the rows within 5× the median of those kept;
+    angles by a trimmed mean rotation): what a table's own errors
+    and the noise leave, plus any blunder whole. Angle columns wrapped, rad; NaN where not
+    measured. Rows without all three positions (or angles) are compared column by column."""
+    Rc = euler_matrices(cmd[:, 3:])
+    P, Q = cmd[:, :3], measured[:, :3]
+    out = np.full(cmd.shape, np.nan)
+    complete = np.isfinite(Q).all(axis=1)
+    RF = np.eye(3)
+    if complete.sum() >= 6:
+        rows = complete.copy()
+        for k in range(4):
+            RF, t, a = _rigid(P, Rc, Q, rows)
+            r = Q - ((P + Rc @ a) @ RF.T + t)
+            norm = np.where(complete, np.linalg.norm(r, axis=1), np.inf)
+            if k == 0:  # the better half first: a fifth of the rows far off bent the fit
+                rows = complete & (norm <= np.median(norm[complete]))
+            else:
+                rows = complete & (norm <= 5 * np.median(norm[rows]) + 1e-12)
+        out[:, :3] = r
+    else:  # a column's offset: the median difference
+        d = Q - P
+        out[:, :3] = d - np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=0)
+    A = measured[:, 3:]
+    full = np.isfinite(A).all(axis=1)
+    if full.sum() >= 6:
+        Rm = euler_matrices(np.where(np.isfinite(A), A, 0.0))
+        if complete.sum() >= 6:  # the frame's rotation from the positions: the target's here
+            RT = _chordal_mean(np.swapaxes(Rc, 1, 2)[full] @ RF.T @ Rm[full])
+            pred = RF @ Rc @ RT
+        else:
+            pred = _chordal_mean(Rm[full] @ np.swapaxes(Rc[full], 1, 2)) @ Rc
+        angles = np.asarray(euler_from_matrix(np.moveaxis(pred, 0, -1))).T
+    else:
+        angles = cmd[:, 3:] + np.nanmedian(A - cmd[:, 3:], axis=0)
+    out[:, 3:] = np.mod(A - angles + np.pi, 2 * np.pi) - np.pi
+    return out
+
+
+def blunders(data) -> list:
+    """`GrossError`s (largest first) of the readings no table could have produced: a tracker
+    that lost its target and logged zeros, a sentinel (−9999) or a stale reading. Each
+    session's readings are compared with its commanded poses through a rigid instrument
+    frame and target offset registered on the session robustly (`_registration_residual`);
+    a reading is a blunder where it is off by more than `BLUNDER_MM` (positions) or
+    `BLUNDER_DEG` (angles) and by more than `BLUNDER_SCALE` robust σ of the session's
+    residuals in its group (1.4826 × the median absolute residual); a row with more than
+    half of its readings so far off lost the target for that stop, and all of them are
+    blunders. A table's own errors move its poses by tenths of a millimetre, so that these
+    readings are set aside before
+    any fit: a few of them otherwise corrupt the fit and its noise estimate, and the
+    structure they leave stops the gross-error screen. A session where more than
+    `BLUNDER_SHARE` of the readings would be set aside keeps them all (the commanded poses
+    or the file's units are off, and the checks and the fit say so). `z` is in those
+    robust σ; `residual` in mm or degrees, from the registration."""
+    cmd, measured = np.asarray(data.cmd_pose, float), np.asarray(data.measured, float)
+    out = []
+    for k in range(len(data.sessions)):  # a handful of sessions
+        rows = np.flatnonzero(data.session_index == k)
+        r = _registration_residual(cmd[rows], measured[rows])
+        z = np.zeros_like(r)
+        far = np.zeros(r.shape, bool)
+        for cols, floor in ((slice(0, 3), BLUNDER_MM), (slice(3, 6), np.deg2rad(BLUNDER_DEG))):
+            e = r[:, cols]
+            scale = 1.4826 * np.nanmedian(np.abs(e)) if np.isfinite(e).any() else np.nan
+            if not np.isfinite(scale) or scale <= 0:
+                continue
+            z[:, cols] = e / scale
+            far[:, cols] = np.abs(e) > max(floor, BLUNDER_SCALE * scale)
+        far &= np.isfinite(r)
+        # a row with most of its readings off lost the target for that stop: all of them
+        lost = far.sum(axis=1) * 2 > np.isfinite(r).sum(axis=1)
+        far |= lost[:, None] & np.isfinite(r)
+        if far.sum() > BLUNDER_SHARE * np.isfinite(measured[rows]).sum():
+            continue
+        for i, c in zip(*np.nonzero(far)):
+            value = r[i, c] if c < 3 else np.rad2deg(r[i, c])
+            out.append(GrossError(int(rows[i]) + 1, POSE_COLUMNS[c], float(value), float(z[i, c])))
+    return sorted(out, key=lambda g: -abs(g.z))

@@ -66,7 +66,7 @@ from .._calibration.fit import (
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements, require_measured
 from .._calibration.noise import SPLIT_ALPHA, part_label, report_unit, screen_groups
-from .._calibration.outliers import TRIAL_ROUNDS, GrossError, without
+from .._calibration.outliers import TRIAL_ROUNDS, GrossError, blunders, without
 from .._calibration.outliers import screen as screen_gross_errors
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._errors import POSE_COLUMNS
@@ -735,6 +735,17 @@ def diagnose(
     if _column_ratio is None:  # the call a user makes: the passes below
         kw = {k: v for k, v in locals().items() if k in _DIAGNOSE_KEYWORDS}
         set_aside, ratio, decided, splits, first, aside_before = [], {}, False, [], None, 0
+        # readings no table could have produced (a tracker that lost its target), before
+        # any fit (`outliers.blunders`)
+        if outliers != "keep" and (pre := blunders(data)):
+            set_aside += pre
+            log(
+                f"{len(pre)} reading(s) no table could have produced set aside before any fit "
+                "(off the commanded pose by more than 5 mm or 0.5°): "
+                + "; ".join(g.words() for g in pre[:5])
+                + ("; ..." if len(pre) > 5 else "")
+            )
+            data = without(data, pre)
         for _ in range(4 + MAX_SPLITS):
             diag = diagnose(nominal, data, **{**kw, "outliers": "keep", "_column_ratio": ratio})
             # data snooping needs a model that fits: where structure is left unexplained,
