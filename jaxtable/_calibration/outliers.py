@@ -213,6 +213,15 @@ def _chordal_mean(Rs: np.ndarray) -> np.ndarray:
     return M
 
 
+def _column_medians(x: np.ndarray) -> np.ndarray:
+    """(C,) the median of each column of x (N, C) over its finite cells; NaN for a column
+    with none (a column the instrument does not read), without numpy's warning."""
+    ok = np.isfinite(x).any(axis=0)
+    out = np.full(x.shape[1], np.nan)
+    out[ok] = np.nanmedian(x[:, ok], axis=0)
+    return out
+
+
 def _registration_residual(cmd: np.ndarray, measured: np.ndarray) -> np.ndarray:
     """(N, 6) measured − the commanded poses (N, 6, mm / rad) read through a rigid instrument
     frame and target offset registered on the rows themselves, robustly (registered again on
@@ -238,7 +247,7 @@ def _registration_residual(cmd: np.ndarray, measured: np.ndarray) -> np.ndarray:
         out[:, :3] = r
     else:  # a column's offset: the median difference
         d = Q - P
-        out[:, :3] = d - np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=0)
+        out[:, :3] = d - _column_medians(d)
     A = measured[:, 3:]
     full = np.isfinite(A).all(axis=1)
     if full.sum() >= 6:
@@ -250,7 +259,7 @@ def _registration_residual(cmd: np.ndarray, measured: np.ndarray) -> np.ndarray:
             pred = _chordal_mean(Rm[full] @ np.swapaxes(Rc[full], 1, 2)) @ Rc
         angles = np.asarray(euler_from_matrix(np.moveaxis(pred, 0, -1))).T
     else:
-        angles = cmd[:, 3:] + np.nanmedian(A - cmd[:, 3:], axis=0)
+        angles = cmd[:, 3:] + _column_medians(A - cmd[:, 3:])
     out[:, 3:] = np.mod(A - angles + np.pi, 2 * np.pi) - np.pi
     return out
 
