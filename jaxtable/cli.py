@@ -393,6 +393,12 @@ def _validate(args) -> int:
         + ", ".join(f"{c} {r:.4g}" for c, r in v.rms.items())
         + ("" if v.leg_rms is None else f"; legs {v.leg_rms:.4g} mm")
     )
+    if v.set_aside:
+        print(
+            f"{len(v.set_aside)} reading(s) no table could have produced set aside: "
+            + "; ".join(g.words() for g in v.set_aside[:5])
+            + ("; ..." if len(v.set_aside) > 5 else "")
+        )
     if v.noise_ratio:
         print(v.noise_words())
     print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)

@@ -1168,8 +1168,9 @@ def _written(tmp_path, text):
 def test_validate_says_whether_new_stops_are_predicted_to_the_noise(table, sessions):
     """Day 2 with the tracker as the fit left it (session A's stored frame), 60 new stops:
     the table as fitted predicts them at the ratio a model that holds gives (√(1 + mean
-    leverage), not 1: the fit's parameter error is in every new stop), below the bound;
-    a table whose leg 3 zero moved 25 µm since (5× the tracker's σ) is above it, named."""
+    leverage), not 1: the fit's parameter error is in every new stop), below the bound,
+    also with a row the tracker logged without its target (set aside and named); a table
+    whose leg 3 zero moved 25 µm since (5× the tracker's σ) is above it, named."""
     true, a, _, cal = sessions
     model = jt.fitted_model(cal, table, a.sessions)
     day2 = jt.simulate(table, true, jt.plan_random(60, 9), jt.tracker6(), frame=FRAME_A,
@@ -1179,6 +1180,13 @@ def test_validate_says_whether_new_stops_are_predicted_to_the_noise(table, sessi
         assert ratio < bound, (g, ratio, expected, bound)
         assert 1.02 < expected < 1.2  # 48 parameters over 80 stops' 480 readings
     assert "within the noise the model's fit found" in v.noise_words()
+    # a row the tracker logged without its target: set aside, named, the verdict unchanged
+    m = day2.measured.copy()
+    m[20] = 0.0
+    v = jt.validate(model, dataclasses.replace(day2, measured=m))
+    assert {(g.row, g.column) for g in v.set_aside} == {(21, c) for c in POSE_COLUMNS}
+    assert "within the noise the model's fit found" in v.noise_words()
+    assert v.as_json()["set_aside"][0]["row"] == 21
     zeros = np.asarray(true.zero_lengths).copy()
     zeros[2] += 0.025
     moved = jt.replace(true, zero_lengths=zeros)

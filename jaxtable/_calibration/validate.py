@@ -48,6 +48,7 @@ from .measurements import (
     require_measured,
 )
 from .model_file import FittedModel, load_fitted_model
+from .outliers import blunders, without
 
 
 @dataclass
@@ -65,6 +66,8 @@ class Validation:
     - `residual` (N, 6): measured − predicted reading (mm / rad, NaN where not measured);
       `leg_residual` (N, 6) mm or None; `predicted_pose` (N, 6): the model's pose per stop;
     - `is_prediction`: False when every row was used to register a frame (a fit);
+    - `set_aside`: readings no table could have produced (`outliers.blunders`: a tracker
+      that lost its target), neither registered nor scored;
     - `noise_ratio`: {column: RMS / the noise σ the fit found for that column (the model
       file's `[instrument] noise`)} over the scored rows; `noise_groups`: {"positions" |
       "angles": (ratio, expected, bound)}: the same over the group's readings (each over
@@ -94,6 +97,7 @@ class Validation:
     data: Measurements = field(repr=False, default=None)
     noise_ratio: dict = field(default_factory=dict)
     noise_groups: dict = field(default_factory=dict)
+    set_aside: list = field(default_factory=list)  # `GrossError`s no table could produce
 
     @property
     def is_prediction(self) -> bool:
@@ -128,6 +132,9 @@ class Validation:
             "rms_units": {c: ("mm" if c in params.XYZ else "deg") for c in self.rms},
             "leg_rms": self.leg_rms,
             "frames": self.frames,
+            "set_aside": [
+                {"row": g.row, "column": g.column, "residual": g.residual} for g in self.set_aside
+            ],
             "rms_over_noise": self.noise_ratio,
             "rms_over_noise_groups": {
                 g: {"ratio": r, "expected": e, "bound": b}
@@ -201,6 +208,11 @@ def validate_model(
     require_measured(data)
     check_units(data)
     check_angle_convention(data)
+    # readings no table could have produced (a tracker that lost its target): neither
+    # registered nor scored, and named (`outliers.blunders`, as calibrate and diagnose do)
+    aside = blunders(data)
+    if aside:
+        data = without(data, aside)
     table = model.table
     check_alignment(data, table)
     check_commanded(data, table)
@@ -298,6 +310,7 @@ def validate_model(
         leg_residual=leg_residual,
         predicted_pose=q,
         data=data,
+        set_aside=aside,
         noise_ratio=ratio,
         noise_groups=groups,
     )

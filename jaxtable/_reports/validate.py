@@ -86,6 +86,15 @@ def markdown(v: Validation, model_source: str, data_source: str, figures) -> str
         lines.append(f"| leg lengths (implied − model) | {v.leg_rms:.4g} mm | |")
     if v.noise_ratio:
         lines += ["", v.noise_words() + "."]
+    if v.set_aside:
+        lines += [
+            "",
+            f"{len(v.set_aside)} reading(s) no table could have produced (off the commanded "
+            "pose by more than 5 mm or 0.5°) were neither registered nor scored: "
+            + "; ".join(g.words() for g in v.set_aside[:10])
+            + ("; ..." if len(v.set_aside) > 10 else "")
+            + ".",
+        ]
     lines += ["", "Instrument frames (pose of the base frame in the instrument frame):", ""]
     for label, f in v.frames.items():
         pose = ", ".join(
