@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import beta
+from discovery_null import clopper_pearson as interval
 
 import jaxtable as jt
 
@@ -27,13 +27,6 @@ SHIFTS_UM = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0)
 LEG = 3  # 1-based
 FRAME = (50.0, -30.0, 20.0, np.deg2rad(1.2), np.deg2rad(-0.9), np.deg2rad(2.0))
 TARGET = (30.0, -20.0, 80.0, 0.0, 0.0, 0.0)
-
-
-def interval(k: int, n: int) -> tuple[float, float]:
-    """Clopper-Pearson 95 % interval of a rate k / n."""
-    lo = beta.ppf(0.025, k, n - k + 1) if k > 0 else 0.0
-    hi = beta.ppf(0.975, k + 1, n - k) if k < n else 1.0
-    return float(lo), float(hi)
 
 
 def one_table(seed: int) -> tuple[np.ndarray, np.ndarray]:

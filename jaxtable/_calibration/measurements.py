@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._context import time_goes_back
+from .._context import clock_restarts, time_goes_back
 from .._errors import POSE_COLUMNS
 from .._io import read_delimited
 from .._params import pose_from_file, pose_to_file
@@ -100,7 +100,7 @@ class Measurements:
             return "the row order" + ("" if t is None else " (the `time` column does not move)")
         step = np.diff(ok)
         words = f"the `time` column, {_duration(step[step > 0].sum())} of readings"
-        restarts = int(np.sum(step < 0))
+        restarts = clock_restarts(t)
         if restarts:
             words += (
                 f"; the clock starts again at {restarts} session change(s) (each run on its "

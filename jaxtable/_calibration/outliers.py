@@ -37,6 +37,7 @@ from .noise import robust_scales
 BLUNDER_MM, BLUNDER_DEG = 5.0, 0.5  # mm, degrees: ~10x a rough table's pose errors
 BLUNDER_SCALE = 20.0  # robust σ of the session's registration residuals
 BLUNDER_SHARE = 0.2  # more of a session's readings than this: the model is off, not them
+BLUNDER_WORDS = f"off the commanded pose by more than {BLUNDER_MM:g} mm or {BLUNDER_DEG:g}°"
 MIN_REDUNDANCY = 0.05
 ALPHA = 0.01
 ALONE = 2.5  # mean neighbour z (own direction) below which a reading stands alone
@@ -200,17 +201,30 @@ def _rigid(P, Rc, Q, rows):
     return R, t, a
 
 
-def _chordal_mean(Rs: np.ndarray) -> np.ndarray:
-    """The rotation nearest the mean of rotations Rs (M, 3, 3), robustly: again over the
-    better half of them, then twice over those within 5× the median angle of those kept."""
-    keep = np.ones(len(Rs), bool)
+def _trimmed(fit, distance, rows: np.ndarray):
+    """`fit(keep)` of the rows `rows` (N,) bool, robustly: fitted again on the better half of
+    them by `distance(model)` (N,), then twice on those within 5× the median distance of
+    the rows kept (a fifth of the rows far off bent a plain fit). Returns the last model."""
+    keep = rows.copy()
     for k in range(4):
+        model = fit(keep)
+        d = np.where(rows, distance(model), np.inf)
+        keep = rows & (d <= (np.median(d[rows]) if k == 0 else 5 * np.median(d[keep]) + 1e-12))
+    return model
+
+
+def _chordal_mean(Rs: np.ndarray) -> np.ndarray:
+    """The rotation nearest the mean of rotations Rs (M, 3, 3), robustly (`_trimmed`, by the
+    angle from it)."""
+
+    def mean(keep):
         U, _, Vt = np.linalg.svd(Rs[keep].mean(axis=0))
-        M = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-        angle = np.linalg.norm(rotation_log(np.swapaxes(Rs, 1, 2) @ M), axis=1)
-        limit = np.median(angle) if k == 0 else 5 * np.median(angle[keep]) + 1e-12
-        keep = angle <= limit
-    return M
+        return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+    def angle(M):
+        return np.linalg.norm(rotation_log(np.swapaxes(Rs, 1, 2) @ M), axis=1)
+
+    return _trimmed(mean, angle, np.ones(len(Rs), bool))
 
 
 def _column_medians(x: np.ndarray) -> np.ndarray:
@@ -224,9 +238,8 @@ def _column_medians(x: np.ndarray) -> np.ndarray:
 
 def _registration_residual(cmd: np.ndarray, measured: np.ndarray) -> np.ndarray:
     """(N, 6) measured − the commanded poses (N, 6, mm / rad) read through a rigid instrument
-    frame and target offset registered on the rows themselves, robustly (registered again on
-    the better half of the rows, then twice on the rows within 5× the median of those kept;
-    angles by a trimmed mean rotation): what a table's own errors
+    frame and target offset registered on the rows themselves, robustly (`_trimmed`; angles
+    by a trimmed mean rotation): what a table's own errors
     and the noise leave, plus any blunder whole. Angle columns wrapped, rad; NaN where not
     measured. Rows without all three positions (or angles) are compared column by column."""
     Rc = euler_matrices(cmd[:, 3:])
@@ -235,16 +248,18 @@ def _registration_residual(cmd: np.ndarray, measured: np.ndarray) -> np.ndarray:
     complete = np.isfinite(Q).all(axis=1)
     RF = np.eye(3)
     if complete.sum() >= 6:
-        rows = complete.copy()
-        for k in range(4):
-            RF, t, a = _rigid(P, Rc, Q, rows)
-            r = Q - ((P + Rc @ a) @ RF.T + t)
-            norm = np.where(complete, np.linalg.norm(r, axis=1), np.inf)
-            if k == 0:  # the better half first: a fifth of the rows far off bent the fit
-                rows = complete & (norm <= np.median(norm[complete]))
-            else:
-                rows = complete & (norm <= 5 * np.median(norm[rows]) + 1e-12)
-        out[:, :3] = r
+
+        def residual(model):
+            RF, t, a = model
+            return Q - ((P + Rc @ a) @ RF.T + t)
+
+        model = _trimmed(
+            lambda keep: _rigid(P, Rc, Q, keep),
+            lambda m: np.linalg.norm(residual(m), axis=1),
+            complete,
+        )
+        RF = model[0]
+        out[:, :3] = residual(model)
     else:  # a column's offset: the median difference
         d = Q - P
         out[:, :3] = d - _column_medians(d)

@@ -66,7 +66,7 @@ from .._calibration.fit import (
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements, require_measured
 from .._calibration.noise import SPLIT_ALPHA, part_label, report_unit, screen_groups
-from .._calibration.outliers import TRIAL_ROUNDS, GrossError, blunders, without
+from .._calibration.outliers import BLUNDER_WORDS, TRIAL_ROUNDS, GrossError, blunders, without
 from .._calibration.outliers import screen as screen_gross_errors
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._errors import POSE_COLUMNS
@@ -741,7 +741,7 @@ def diagnose(
             set_aside += pre
             log(
                 f"{len(pre)} reading(s) no table could have produced set aside before any fit "
-                "(off the commanded pose by more than 5 mm or 0.5°): "
+                f"({BLUNDER_WORDS}): "
                 + "; ".join(g.words() for g in pre[:5])
                 + ("; ..." if len(pre) > 5 else "")
             )

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _params as params
+from .._calibration.outliers import BLUNDER_WORDS
 from .._calibration.validate import Validation
 from .figures import pyplot
 
@@ -89,8 +90,8 @@ def markdown(v: Validation, model_source: str, data_source: str, figures) -> str
     if v.set_aside:
         lines += [
             "",
-            f"{len(v.set_aside)} reading(s) no table could have produced (off the commanded "
-            "pose by more than 5 mm or 0.5°) were neither registered nor scored: "
+            f"{len(v.set_aside)} reading(s) no table could have produced ({BLUNDER_WORDS}) "
+            "were neither registered nor scored: "
             + "; ".join(g.words() for g in v.set_aside[:10])
             + ("; ..." if len(v.set_aside) > 10 else "")
             + ".",
