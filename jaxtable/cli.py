@@ -227,7 +227,7 @@ def _prior(value):
 def _calibrate(args) -> int:
     from ._calibration.fit import check_physical, fit_screened
     from ._calibration.measurements import load_measurements
-    from ._calibration.outliers import without
+    from ._calibration.outliers import repeated_cells, without
     from ._calibration.posterior import posterior, predictive_bands
     from ._calibration.simulate import plan_x_line
     from ._discovery.structure import TooFewRowsError, structure_test
@@ -253,7 +253,7 @@ def _calibrate(args) -> int:
         check_physical(cal)  # before anything is written
     except ValueError as e:
         raise UsageError(f"{args.data}: {e}") from None
-    data = without(data, cal.set_aside or [])  # what was fitted
+    data = without(data, (cal.set_aside or []) + repeated_cells(data, cal.repeated))  # fitted
     post = bands = None
     if args.mcmc:
         post = posterior(st, cal, n_steps=args.steps, seed=0, progress=True)
@@ -282,6 +282,7 @@ def _calibrate(args) -> int:
 def _diagnose(args) -> int:
     from ._calibration.fit import check_physical
     from ._calibration.measurements import load_measurements
+    from ._calibration.outliers import repeat_words
     from ._discovery.diagnose import diagnose, group_label
     from ._effects import EFFECTS
     from ._reports.diagnose import write_report
@@ -324,6 +325,8 @@ def _diagnose(args) -> int:
     except ValueError as e:
         raise UsageError(f"{source}: {e}") from None
     paths = write_report(diag, out, source, json_path)
+    if diag.repeated:
+        print(repeat_words(diag.repeated))
     if diag.set_aside:
         print(
             f"{len(diag.set_aside)} reading(s) set aside as gross errors: "
@@ -369,6 +372,7 @@ def _validate(args) -> int:
 
     from ._calibration.measurements import load_measurements
     from ._calibration.model_file import load_fitted_model
+    from ._calibration.outliers import repeat_words
     from ._calibration.validate import validate_model
     from ._reports.validate import write_validation_report
 
@@ -393,6 +397,8 @@ def _validate(args) -> int:
         + ", ".join(f"{c} {r:.4g}" for c, r in v.rms.items())
         + ("" if v.leg_rms is None else f"; legs {v.leg_rms:.4g} mm")
     )
+    if v.repeated:
+        print(repeat_words(v.repeated))
     if v.set_aside:
         print(
             f"{len(v.set_aside)} reading(s) no table could have produced set aside: "
@@ -590,9 +596,10 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument(
             "--keep-outliers",
             action="store_true",
-            help="fit every reading (default: readings the fit cannot reconcile with the rest "
-            "are found by data snooping with a robust scale, family-wise false-alarm rate "
-            "1 %%, set aside as not measured and named in the report)",
+            help="fit every reading (default: rows that repeat an earlier row to the last "
+            "digit and readings no table could have produced are set aside before any fit; "
+            "readings the fit cannot reconcile with the rest are found by data snooping with "
+            "a robust scale, family-wise false-alarm rate 1 %%; all named in the report)",
         )
 
     def compensation(sp, default=None, what="without cmd_l columns: the controller"):

@@ -892,6 +892,84 @@ def test_a_tracker_that_lost_its_target_logs_readings_no_table_could_produce(tab
     assert {(g.row - 1, POSE_COLUMNS.index(g.column)) for g in diag.set_aside} >= cells
 
 
+def _rows(data, idx):
+    """`data` with its rows taken in the order `idx` (repeats allowed)."""
+    n = len(data)
+    return jt.Measurements(**{
+        f.name: (v[idx] if isinstance(v := getattr(data, f.name), np.ndarray) and v.shape[:1]
+                 == (n,) else v)
+        for f in dataclasses.fields(data)
+    })  # fmt: skip
+
+
+def test_a_stop_logged_twice_is_set_aside_and_the_fit_is_the_file_s_without_it(table, sessions):
+    """Session A's 80 stops with 10 rows written again: 8 right after themselves (a logger
+    that wrote the stop twice, or a tracker that returned its last value), 2 at the end (a
+    file joined with part of itself). Each repeat is named with the row it repeats; the fit
+    is the fit of the file as measured to 1e-9 of a parameter's σ; kept, the repeated rows'
+    residuals agree exactly with their twins' and the structure test claims structure
+    (p < 0.01; of 10 data sets of 150 stops with 15 rows repeated, 8 went under 0.05,
+    against 1 of the 10 as measured); `diagnose` and `validate` set them aside and name them
+    too."""
+    from jaxtable._calibration.fit import fit_screened
+    from jaxtable._discovery.structure import structure_test
+
+    _, a, b, clean = sessions
+    twice = [3, 9, 17, 30, 44, 52, 61, 70]
+    idx = np.sort(np.r_[np.arange(len(a)), twice])
+    idx = np.r_[idx, 5, 6]
+    bad = _rows(a, idx)
+    found = jt.calibrate(table, bad)
+    want = {(int(np.flatnonzero(idx == r)[1]) + 1, int(np.flatnonzero(idx == r)[0]) + 1)
+            for r in twice + [5, 6]}  # fmt: skip
+    assert {(r.row, r.of) for r in found.repeated} == want, found.repeated
+    assert found.set_aside == [] and found.rows_skipped == 10
+    ok = np.isfinite(clean.std) & (clean.std > 0)
+    np.testing.assert_array_less(np.abs(found.value - clean.value)[ok] / clean.std[ok], 1e-9)
+    assert "10 row(s) repeat an earlier row's command and readings" in found.report()
+    st, kept = fit_screened(table, bad, jt.GEOMETRY, outliers="keep")
+    assert kept.repeated == [] and structure_test(kept, st).p_value < 0.01
+    diag = jt.diagnose(table, bad, library=[], discover=False, log=lambda _: None)
+    assert {(r.row, r.of) for r in diag.repeated} == want
+    assert diag.as_json()["repeated_rows"][0] == {"row": min(want)[0], "of": min(want)[1]}
+    model = jt.fitted_model(clean, table, a.sessions)
+    v = jt.validate(model, _rows(b, np.r_[np.arange(len(b)), 7]), register=10)
+    ref = jt.validate(model, b, register=10)
+    assert [(r.row, r.of) for r in v.repeated] == [(len(b) + 1, 8)]
+    assert v.rms == pytest.approx(ref.rms, rel=1e-12) and v.rows_predicted == ref.rows_predicted
+
+
+def test_readings_equal_by_chance_are_not_repeats():
+    """A tracker that writes positions to 10 µm (σ 5 µm), twenty stops at one commanded pose
+    (a repeatability run): readings coincide by chance (two of one column with chance
+    ~0.56, ~0.18 for all three), and none is taken for a stop logged twice. The same file
+    with a clock: a row that repeats another's time as well is one. Written to 1e-6 mm,
+    two equal rows are. The decimal step of a value as written, by hand."""
+    from jaxtable._calibration.outliers import repeats, written_step
+
+    np.testing.assert_array_equal(
+        written_step([27.125, 4.6975, 3.0, -0.02, np.nan, np.rad2deg(np.deg2rad(4.6975))]),
+        [1e-3, 1e-4, 1.0, 1e-2, np.nan, 1e-4],
+    )
+    assert written_step([27.404682966712787])[0] < 1e-12
+    rng = np.random.default_rng(3)
+    cmd = np.tile([10.0, -5.0, 20.0, 0.0, 0.0, 0.0], (20, 1))
+    m = np.full((20, 6), np.nan)
+    m[:, :3] = np.round(cmd[:, :3] + rng.normal(0, 0.005, (20, 3)), 2)
+    data = jt.Measurements(cmd_pose=cmd, measured=m)
+    _, first = np.unique(m[:, :3], axis=0, return_index=True)
+    assert len(first) < 20  # rows that agree to the last digit, by chance
+    assert repeats(data) == []
+    timed = dataclasses.replace(data, time=30.0 * np.arange(20))
+    assert repeats(timed) == []
+    timed.time[9] = timed.time[8]
+    m[9] = m[8]
+    assert [(r.row, r.of) for r in repeats(timed)] == [(10, 9)]
+    fine = dataclasses.replace(data, measured=np.round(m + rng.normal(0, 0.005, m.shape), 6))
+    fine.measured[15] = fine.measured[4]
+    assert [(r.row, r.of) for r in repeats(fine)] == [(16, 5)]
+
+
 def test_no_reading_of_a_clean_file_is_a_blunder(table):
     """30 clean 6-D tracker runs (fresh tables, plans, noise), read through frames metres
     away and turned, with the target 150 mm off the platform origin, the controller not

@@ -61,7 +61,7 @@ from .noise import (
     screen_groups,
 )
 from .noise import estimate as noise_estimate
-from .outliers import ALPHA, TRIAL_ROUNDS, GrossError, blunders, without
+from .outliers import ALPHA, TRIAL_ROUNDS, GrossError, prescreen, repeat_words, without
 from .outliers import screen as screen_gross_errors
 from .prior import check as prior_check
 from .prior import weights as prior_weights
@@ -810,6 +810,9 @@ class Calibration:
     set_aside: list | None = None
     untested: int = 0
     crowded: int = 0  # readings beyond the bound whose neighbours are too: structure, kept
+    # rows that repeat an earlier row exactly (a stop logged twice: `outliers.Repeat`), set
+    # aside with the readings above
+    repeated: list = field(default_factory=list)
     screen_skipped: str = ""  # why the screen did not run (structure the model misses)
     # where it did not run for structure: the readings its trial found far from their
     # neighbours (`outliers.GrossError`, measured − this fit's model, largest first), kept in
@@ -926,8 +929,14 @@ class Calibration:
         ]
         if self.noise is not None:
             lines += self.noise.lines()
-        if self.rows_skipped:
-            lines.append(f"{self.rows_skipped} row(s) with nothing measured: skipped")
+        if self.repeated:
+            lines.append(repeat_words(self.repeated))
+        if self.rows_skipped > len(self.repeated):  # a repeated row is one of them
+            other = " other" if self.repeated else ""
+            lines.append(
+                f"{self.rows_skipped - len(self.repeated)}{other} row(s) with nothing "
+                "measured: skipped"
+            )
         if self.set_aside:
             shown = "; ".join(g.words() for g in self.set_aside[:10])
             more = f"; ... and {len(self.set_aside) - 10} more" if len(self.set_aside) > 10 else ""
@@ -1693,15 +1702,15 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
 
     if outliers == "keep":
         return run(data)
-    # readings no table could have produced (a tracker that lost its target), before any
-    # fit: they would corrupt it, and the structure they leave stops the screen
-    pre = blunders(data)
-    if pre:
-        data = without(data, pre)
+    # rows a logger wrote twice and readings no table could have produced (a tracker that
+    # lost its target), before any fit: they would corrupt it, and the structure they leave
+    # stops the screen
+    data, repeated, pre = prescreen(data)
     st, cal = run(data)
     st, cal = set_aside_gross_errors(data, st, cal, run, setup_kw.get("compensated"))
     if pre:
         cal.set_aside = sorted(pre + list(cal.set_aside), key=lambda g: -abs(g.z))
+    cal.repeated = repeated
     return st, cal
 
 

@@ -38,6 +38,11 @@ BLUNDER_MM, BLUNDER_DEG = 5.0, 0.5  # mm, degrees: ~10x a rough table's pose err
 BLUNDER_SCALE = 20.0  # robust σ of the session's registration residuals
 BLUNDER_SHARE = 0.2  # more of a session's readings than this: the model is off, not them
 BLUNDER_WORDS = f"off the commanded pose by more than {BLUNDER_MM:g} mm or {BLUNDER_DEG:g}°"
+# rows that repeat an earlier row to the last written digit (`repeats`): the finest noise a
+# table's instrument has (mm, degrees; an interferometer's 0.1 µm, an autocollimator's 0.1″)
+# and the chance of such a coincidence under it below which a repeat is a stop logged twice
+REPEAT_FLOOR = np.array([1e-4] * 3 + [0.1 / 3600] * 3)
+REPEAT_CHANCE = 1e-6
 MIN_REDUNDANCY = 0.05
 ALPHA = 0.01
 ALONE = 2.5  # mean neighbour z (own direction) below which a reading stands alone
@@ -58,6 +63,99 @@ class GrossError:
     def words(self) -> str:
         unit = "mm" if self.column in POSE_COLUMNS[:3] else "°"
         return f"row {self.row} {self.column} {self.residual:+.4g} {unit} ({self.z:+.0f}σ)"
+
+
+@dataclass(frozen=True)
+class Repeat:
+    """A row (1 = the first data row) that repeats the earlier row `of`: the same command
+    and every reading to the last digit."""
+
+    row: int
+    of: int
+
+    def words(self) -> str:
+        return f"row {self.row} = row {self.of}"
+
+
+def repeat_words(found) -> str:
+    """`Repeat`s in words for logs and reports ("" for none)."""
+    if not found:
+        return ""
+    shown = "; ".join(r.words() for r in found[:10])
+    more = f"; ... and {len(found) - 10} more" if len(found) > 10 else ""
+    return (
+        f"{len(found)} row(s) repeat an earlier row's command and readings to the last digit "
+        f"(a stop logged twice, or a stale reading), set aside before any fit: {shown}{more}"
+    )
+
+
+def written_step(values) -> np.ndarray:
+    """The decimal step each value is written to (10⁻ᵏ for the least k that makes it a whole
+    number of steps, to rounding), elementwise; a value in full double precision gets a step
+    near its own rounding (~1e-15 of it). NaN where the value is not finite."""
+    v = np.asarray(values, float)
+    step = np.full(v.shape, np.nan)
+    for k in range(18):  # the decimals a double can carry
+        x = v * 10.0**k
+        whole = np.abs(x - np.round(x)) <= 1e-6 + 8 * np.finfo(float).eps * np.abs(x)
+        step = np.where(np.isnan(step) & whole & np.isfinite(v), 10.0**-k, step)
+    return step
+
+
+def repeats(data) -> list:
+    """`Repeat`s: rows whose command and readings (the same cells read, every value equal)
+    equal an earlier row's, each named with the first row it repeats. A logger that wrote a
+    stop twice, an instrument that returned its last value again, or a file joined with part
+    of itself give such rows; counted twice, a stop weighs double in every fit and its
+    residual agrees exactly with its twin's, which the structure test takes for structure
+    (15 repeated rows in 150 clean stops: structure claimed, p = 0.002). Two real readings
+    agree to the last digit by chance: with a written step q and noise σ, two readings of one
+    column coincide with chance ≈ q / (2√π σ). A row is a repeat where the product of that
+    chance over its readings, with σ at the finest noise a table's instrument has
+    (`REPEAT_FLOOR`), is under `REPEAT_CHANCE`, or where the file's clock, which otherwise
+    moves from row to row, gives both rows the same time. Readings written to a micrometre,
+    without a clock, are therefore not screened: equal readings there can be chance."""
+    cmd = np.asarray(data.cmd_pose, float)
+    measured = np.asarray(data.measured, float)
+    n = len(cmd)
+    key = np.concatenate([cmd, measured], axis=1) + 0.0  # −0 as 0
+    key = np.where(np.isnan(key), np.nan, key).view(np.int64)  # one NaN; bits compare
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    first = first[np.ravel(inverse)]
+    read = np.isfinite(measured)
+    candidate = (first < np.arange(n)) & read.any(axis=1)
+    if not candidate.any():
+        return []
+    values = np.concatenate([measured[:, :3], np.rad2deg(measured[:, 3:])], axis=1)
+    step = written_step(values)
+    chance = np.where(read, np.minimum(1.0, step / (2 * np.sqrt(np.pi) * REPEAT_FLOOR)), 1.0)
+    same = np.prod(chance, axis=1) < REPEAT_CHANCE
+    if data.time is not None:  # the same time on a clock that moves: the same stop
+        clock = np.asarray(data.time, float)
+        moves = np.abs(np.diff(clock[np.isfinite(clock)]))
+        if len(moves) and np.median(moves) > 0:
+            same |= clock == clock[first]
+    rows = np.flatnonzero(candidate & same)
+    return [Repeat(int(r) + 1, int(first[r]) + 1) for r in rows]
+
+
+def repeated_cells(data, found) -> list:
+    """The (row index, column index) readings of the `Repeat` rows `found`, for `without`."""
+    read = np.isfinite(np.asarray(data.measured, float))
+    return [(r.row - 1, int(c)) for r in found for c in np.flatnonzero(read[r.row - 1])]
+
+
+def prescreen(data):
+    """Before any fit: the rows a logger wrote twice (`repeats`), then the readings no table
+    could have produced (`blunders`), set aside (`without`). Returns (data without them,
+    `Repeat`s, `GrossError`s)."""
+    found = repeats(data)
+    if found:
+        data = without(data, repeated_cells(data, found))
+    pre = blunders(data)
+    if pre:
+        data = without(data, pre)
+    return data, found, pre
 
 
 def without(data, cells):

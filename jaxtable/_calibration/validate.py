@@ -48,7 +48,7 @@ from .measurements import (
     require_measured,
 )
 from .model_file import FittedModel, load_fitted_model
-from .outliers import blunders, without
+from .outliers import prescreen
 
 
 @dataclass
@@ -67,7 +67,8 @@ class Validation:
       `leg_residual` (N, 6) mm or None; `predicted_pose` (N, 6): the model's pose per stop;
     - `is_prediction`: False when every row was used to register a frame (a fit);
     - `set_aside`: readings no table could have produced (`outliers.blunders`: a tracker
-      that lost its target), neither registered nor scored;
+      that lost its target), neither registered nor scored; `repeated`: rows that repeat an
+      earlier row exactly (`outliers.repeats`: a stop logged twice), likewise;
     - `noise_ratio`: {column: RMS / the noise σ the fit found for that column (the model
       file's `[instrument] noise`)} over the scored rows; `noise_groups`: {"positions" |
       "angles": (ratio, expected, bound)}: the same over the group's readings (each over
@@ -98,6 +99,7 @@ class Validation:
     noise_ratio: dict = field(default_factory=dict)
     noise_groups: dict = field(default_factory=dict)
     set_aside: list = field(default_factory=list)  # `GrossError`s no table could produce
+    repeated: list = field(default_factory=list)  # `Repeat`s: rows a logger wrote twice
 
     @property
     def is_prediction(self) -> bool:
@@ -135,6 +137,7 @@ class Validation:
             "set_aside": [
                 {"row": g.row, "column": g.column, "residual": g.residual} for g in self.set_aside
             ],
+            "repeated_rows": [{"row": r.row, "of": r.of} for r in self.repeated],
             "rms_over_noise": self.noise_ratio,
             "rms_over_noise_groups": {
                 g: {"ratio": r, "expected": e, "bound": b}
@@ -208,11 +211,10 @@ def validate_model(
     require_measured(data)
     check_units(data)
     check_angle_convention(data)
-    # readings no table could have produced (a tracker that lost its target): neither
-    # registered nor scored, and named (`outliers.blunders`, as calibrate and diagnose do)
-    aside = blunders(data)
-    if aside:
-        data = without(data, aside)
+    # rows a logger wrote twice and readings no table could have produced (a tracker that
+    # lost its target): neither registered nor scored, and named (`outliers.prescreen`, as
+    # calibrate and diagnose do)
+    data, repeated, aside = prescreen(data)
     table = model.table
     check_alignment(data, table)
     check_commanded(data, table)
@@ -311,6 +313,7 @@ def validate_model(
         predicted_pose=q,
         data=data,
         set_aside=aside,
+        repeated=repeated,
         noise_ratio=ratio,
         noise_groups=groups,
     )

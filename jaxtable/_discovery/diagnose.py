@@ -66,7 +66,14 @@ from .._calibration.fit import (
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
 from .._calibration.measurements import Measurements, require_measured
 from .._calibration.noise import SPLIT_ALPHA, part_label, report_unit, screen_groups
-from .._calibration.outliers import BLUNDER_WORDS, TRIAL_ROUNDS, GrossError, blunders, without
+from .._calibration.outliers import (
+    BLUNDER_WORDS,
+    TRIAL_ROUNDS,
+    GrossError,
+    prescreen,
+    repeat_words,
+    without,
+)
 from .._calibration.outliers import screen as screen_gross_errors
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._errors import POSE_COLUMNS
@@ -409,6 +416,9 @@ class Diagnosis:
     residual_model: ResidualGP | None = None
     # readings set aside as gross errors (`outliers.GrossError`, largest first); None: kept
     set_aside: list | None = None
+    # rows that repeat an earlier row exactly (a stop logged twice: `outliers.Repeat`), set
+    # aside before any fit
+    repeated: list = field(default_factory=list)
     # sessions split at a step in time (`changepoint.SessionSplit`, in the order found)
     split_sessions: list = field(default_factory=list)
 
@@ -511,6 +521,7 @@ class Diagnosis:
                 {"row": g.row, "column": g.column, "residual": g.residual, "z": g.z}
                 for g in self.set_aside
             ],
+            "repeated_rows": [{"row": r.row, "of": r.of} for r in self.repeated],
             "residual_model": None
             if self.residual_model is None
             else {
@@ -735,17 +746,21 @@ def diagnose(
     if _column_ratio is None:  # the call a user makes: the passes below
         kw = {k: v for k, v in locals().items() if k in _DIAGNOSE_KEYWORDS}
         set_aside, ratio, decided, splits, first, aside_before = [], {}, False, [], None, 0
-        # readings no table could have produced (a tracker that lost its target), before
-        # any fit (`outliers.blunders`)
-        if outliers != "keep" and (pre := blunders(data)):
-            set_aside += pre
-            log(
-                f"{len(pre)} reading(s) no table could have produced set aside before any fit "
-                f"({BLUNDER_WORDS}): "
-                + "; ".join(g.words() for g in pre[:5])
-                + ("; ..." if len(pre) > 5 else "")
-            )
-            data = without(data, pre)
+        # rows a logger wrote twice and readings no table could have produced (a tracker
+        # that lost its target), before any fit (`outliers.prescreen`)
+        repeated = []
+        if outliers != "keep":
+            data, repeated, pre = prescreen(data)
+            if repeated:
+                log(repeat_words(repeated))
+            if pre:
+                set_aside += pre
+                log(
+                    f"{len(pre)} reading(s) no table could have produced set aside before "
+                    f"any fit ({BLUNDER_WORDS}): "
+                    + "; ".join(g.words() for g in pre[:5])
+                    + ("; ..." if len(pre) > 5 else "")
+                )
         for _ in range(4 + MAX_SPLITS):
             diag = diagnose(nominal, data, **{**kw, "outliers": "keep", "_column_ratio": ratio})
             # data snooping needs a model that fits: where structure is left unexplained,
@@ -808,6 +823,7 @@ def diagnose(
         if outliers == "keep":
             return diag
         diag.set_aside = sorted(set_aside, key=lambda g: -abs(g.z))
+        diag.repeated = repeated
         return diag
     base = params.as_names(base)
     library = list(EFFECTS) if library is None else list(params.as_names(library))

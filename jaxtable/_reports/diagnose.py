@@ -10,6 +10,7 @@ from .. import _params as vocab
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_text
 from .._calibration.measurements import Measurements, save_measurements
 from .._calibration.model_file import save_fitted_model
+from .._calibration.outliers import repeat_words
 from .._discovery.diagnose import (
     SIGNATURE_OF,
     Diagnosis,
@@ -233,6 +234,7 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         "joints modulo the rigid motions the instrument frame absorbs) + instrument frame per "
         "session and target offset.",
         "",
+        *([repeat_words(diag.repeated) + ".", ""] if diag.repeated else []),
         *(
             [
                 f"**{len(diag.set_aside)} reading(s) set aside as gross errors** (measured − "

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _params as params
-from .._calibration.outliers import BLUNDER_WORDS
+from .._calibration.outliers import BLUNDER_WORDS, repeat_words
 from .._calibration.validate import Validation
 from .figures import pyplot
 
@@ -87,6 +87,8 @@ def markdown(v: Validation, model_source: str, data_source: str, figures) -> str
         lines.append(f"| leg lengths (implied − model) | {v.leg_rms:.4g} mm | |")
     if v.noise_ratio:
         lines += ["", v.noise_words() + "."]
+    if v.repeated:
+        lines += ["", repeat_words(v.repeated) + "; neither registered nor scored."]
     if v.set_aside:
         lines += [
             "",
