@@ -227,7 +227,6 @@ def _prior(value):
 def _calibrate(args) -> int:
     from ._calibration.fit import check_physical, fit_screened
     from ._calibration.measurements import load_measurements
-    from ._calibration.outliers import repeated_cells, without
     from ._calibration.posterior import posterior, predictive_bands
     from ._calibration.simulate import plan_x_line
     from ._discovery.structure import TooFewRowsError, structure_test
@@ -253,7 +252,7 @@ def _calibrate(args) -> int:
         check_physical(cal)  # before anything is written
     except ValueError as e:
         raise UsageError(f"{args.data}: {e}") from None
-    data = without(data, (cal.set_aside or []) + repeated_cells(data, cal.repeated))  # fitted
+    data = cal.data  # as fitted: rows set aside, stops read several times merged
     post = bands = None
     if args.mcmc:
         post = posterior(st, cal, n_steps=args.steps, seed=0, progress=True)

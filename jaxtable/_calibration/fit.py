@@ -65,6 +65,7 @@ from .outliers import ALPHA, TRIAL_ROUNDS, GrossError, prescreen, repeat_words, 
 from .outliers import screen as screen_gross_errors
 from .prior import check as prior_check
 from .prior import weights as prior_weights
+from .stops import merge_stops
 
 JOINTS = params.JOINTS
 COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
@@ -813,6 +814,11 @@ class Calibration:
     # rows that repeat an earlier row exactly (a stop logged twice: `outliers.Repeat`), set
     # aside with the readings above
     repeated: list = field(default_factory=list)
+    # stops read more than once (`stops.Stops`), each fitted once at the mean of its
+    # readings; None: one row a stop
+    stops: object | None = None
+    # the data as fitted (`fit_screened`: rows set aside, stops merged); None: `data`
+    data: Measurements | None = field(default=None, repr=False)
     screen_skipped: str = ""  # why the screen did not run (structure the model misses)
     # where it did not run for structure: the readings its trial found far from their
     # neighbours (`outliers.GrossError`, measured − this fit's model, largest first), kept in
@@ -826,6 +832,17 @@ class Calibration:
     # and `covariance` are then the posterior's, `chi2` the data's alone
     prior_sigma: np.ndarray | None = None
     chi2_prior: float = 0.0
+
+    def group_sigma(self) -> dict:
+        """{"positions" | "angles": the σ the fit found for the group} (mm / rad), the
+        groups the noise model has by those names."""
+        if self.noise is None:
+            return {}
+        return {
+            g: float(s)
+            for g, s in zip(self.noise.names, np.asarray(self.noise.sigma))
+            if g in ("positions", "angles")
+        }
 
     @property
     def prior_share(self) -> np.ndarray | None:
@@ -927,15 +944,20 @@ class Calibration:
                 f"{c} {self.rms_before[c]:.4g} -> {self.rms_after[c]:.4g}" for c in self.rms_after
             ),
         ]
-        if self.noise is not None:
-            lines += self.noise.lines()
         if self.repeated:
             lines.append(repeat_words(self.repeated))
-        if self.rows_skipped > len(self.repeated):  # a repeated row is one of them
-            other = " other" if self.repeated else ""
+        if self.stops is not None:
+            lines.append(self.stops.words(self.group_sigma()))
+        if self.noise is not None:
+            lines += self.noise.lines()
+        # repeated rows and a stop's rows after its first are among the rows skipped
+        merged = len(self.repeated) + (
+            0 if self.stops is None else self.stops.rows - self.stops.stops
+        )
+        if self.rows_skipped > merged:
+            other = " other" if merged else ""
             lines.append(
-                f"{self.rows_skipped - len(self.repeated)}{other} row(s) with nothing "
-                "measured: skipped"
+                f"{self.rows_skipped - merged}{other} row(s) with nothing measured: skipped"
             )
         if self.set_aside:
             shown = "; ".join(g.words() for g in self.set_aside[:10])
@@ -1701,16 +1723,22 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
         return st, fit(st, **kw)
 
     if outliers == "keep":
-        return run(data)
+        data, stops = merge_stops(data, screen=False)
+        st, cal = run(data)
+        cal.stops, cal.data = stops, data
+        return st, cal
     # rows a logger wrote twice and readings no table could have produced (a tracker that
     # lost its target), before any fit: they would corrupt it, and the structure they leave
-    # stops the screen
+    # stops the screen; then a stop read several times fitted once, at its readings' mean
     data, repeated, pre = prescreen(data)
+    data, stops = merge_stops(data)
+    pre += [] if stops is None else stops.set_aside
     st, cal = run(data)
     st, cal = set_aside_gross_errors(data, st, cal, run, setup_kw.get("compensated"))
+    cal.data = without(data, cal.set_aside)
     if pre:
         cal.set_aside = sorted(pre + list(cal.set_aside), key=lambda g: -abs(g.z))
-    cal.repeated = repeated
+    cal.repeated, cal.stops = repeated, stops
     return st, cal
 
 

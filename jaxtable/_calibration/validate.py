@@ -49,6 +49,7 @@ from .measurements import (
 )
 from .model_file import FittedModel, load_fitted_model
 from .outliers import prescreen
+from .stops import merge_stops
 
 
 @dataclass
@@ -100,6 +101,7 @@ class Validation:
     noise_groups: dict = field(default_factory=dict)
     set_aside: list = field(default_factory=list)  # `GrossError`s no table could produce
     repeated: list = field(default_factory=list)  # `Repeat`s: rows a logger wrote twice
+    stops: object | None = None  # `stops.Stops`: stops read more than once, scored at the mean
 
     @property
     def is_prediction(self) -> bool:
@@ -138,6 +140,7 @@ class Validation:
                 {"row": g.row, "column": g.column, "residual": g.residual} for g in self.set_aside
             ],
             "repeated_rows": [{"row": r.row, "of": r.of} for r in self.repeated],
+            "stops_read_more_than_once": None if self.stops is None else self.stops.as_json(),
             "rms_over_noise": self.noise_ratio,
             "rms_over_noise_groups": {
                 g: {"ratio": r, "expected": e, "bound": b}
@@ -215,6 +218,8 @@ def validate_model(
     # lost its target): neither registered nor scored, and named (`outliers.prescreen`, as
     # calibrate and diagnose do)
     data, repeated, aside = prescreen(data)
+    data, stops = merge_stops(data)  # a stop read several times: predicted at its mean
+    aside = aside + ([] if stops is None else stops.set_aside)
     table = model.table
     check_alignment(data, table)
     check_commanded(data, table)
@@ -314,6 +319,7 @@ def validate_model(
         data=data,
         set_aside=aside,
         repeated=repeated,
+        stops=stops,
         noise_ratio=ratio,
         noise_groups=groups,
     )

@@ -75,6 +75,7 @@ from .._calibration.outliers import (
     without,
 )
 from .._calibration.outliers import screen as screen_gross_errors
+from .._calibration.stops import merge_stops
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._errors import POSE_COLUMNS
 from .._jit import jit
@@ -419,6 +420,8 @@ class Diagnosis:
     # rows that repeat an earlier row exactly (a stop logged twice: `outliers.Repeat`), set
     # aside before any fit
     repeated: list = field(default_factory=list)
+    # stops read more than once (`stops.Stops`), each fitted once at its readings' mean
+    stops: object | None = None
     # sessions split at a step in time (`changepoint.SessionSplit`, in the order found)
     split_sessions: list = field(default_factory=list)
 
@@ -522,6 +525,9 @@ class Diagnosis:
                 for g in self.set_aside
             ],
             "repeated_rows": [{"row": r.row, "of": r.of} for r in self.repeated],
+            "stops_read_more_than_once": None
+            if self.stops is None
+            else self.stops.as_json(self.final.group_sigma()),
             "residual_model": None
             if self.residual_model is None
             else {
@@ -761,6 +767,16 @@ def diagnose(
                     + "; ".join(g.words() for g in pre[:5])
                     + ("; ..." if len(pre) > 5 else "")
                 )
+        # a stop read several times: fitted once, at the mean of its readings
+        data, stops = merge_stops(data, screen=outliers != "keep")
+        if stops is not None:
+            log(stops.words())
+            set_aside += stops.set_aside
+            if stops.set_aside:
+                log(
+                    f"{len(stops.set_aside)} reading(s) far from the other readings of their "
+                    "stop set aside: " + "; ".join(g.words() for g in stops.set_aside[:5])
+                )
         for _ in range(4 + MAX_SPLITS):
             diag = diagnose(nominal, data, **{**kw, "outliers": "keep", "_column_ratio": ratio})
             # data snooping needs a model that fits: where structure is left unexplained,
@@ -820,6 +836,7 @@ def diagnose(
                 dataclasses.replace(sp, heldout_rms_before=before, heldout_rms_after=after)
                 for sp in splits
             ]
+        diag.stops = stops
         if outliers == "keep":
             return diag
         diag.set_aside = sorted(set_aside, key=lambda g: -abs(g.z))

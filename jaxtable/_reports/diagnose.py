@@ -235,6 +235,7 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
         "session and target offset.",
         "",
         *([repeat_words(diag.repeated) + ".", ""] if diag.repeated else []),
+        *([diag.stops.words(diag.final.group_sigma()) + ".", ""] if diag.stops is not None else []),
         *(
             [
                 f"**{len(diag.set_aside)} reading(s) set aside as gross errors** (measured − "

@@ -89,6 +89,8 @@ def markdown(v: Validation, model_source: str, data_source: str, figures) -> str
         lines += ["", v.noise_words() + "."]
     if v.repeated:
         lines += ["", repeat_words(v.repeated) + "; neither registered nor scored."]
+    if v.stops is not None:
+        lines += ["", v.stops.words() + "."]
     if v.set_aside:
         lines += [
             "",
