@@ -69,7 +69,9 @@ class Validation:
     - `is_prediction`: False when every row was used to register a frame (a fit);
     - `set_aside`: readings no table could have produced (`outliers.blunders`: a tracker
       that lost its target), neither registered nor scored; `repeated`: rows that repeat an
-      earlier row exactly (`outliers.repeats`: a stop logged twice), likewise;
+      earlier row exactly (`outliers.repeats`: a stop logged twice), likewise; `stops`:
+      stops read in several consecutive rows (`stops.merge_stops`), predicted and scored
+      once, at the mean of their readings (a glitch among them in `set_aside`);
     - `noise_ratio`: {column: RMS / the noise σ the fit found for that column (the model
       file's `[instrument] noise`)} over the scored rows; `noise_groups`: {"positions" |
       "angles": (ratio, expected, bound)}: the same over the group's readings (each over
