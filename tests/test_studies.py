@@ -45,6 +45,7 @@ STUDIES = {
     "discovery_null": ([], ["discovery_null.md"]),
     "discovery_baselines": ([], ["discovery_baselines.md", "discovery_baselines.png"]),
     "validation_power": ([], ["validation_power.md", "validation_power.png"]),
+    "repeatability": ([], ["repeatability.md", "repeatability.png"]),
     "design_tradeoffs": (
         [],
         ["design_tradeoffs.md", "design_lead.png", "design_geometry_maps.png"],
