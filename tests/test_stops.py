@@ -101,7 +101,7 @@ def read_four_times(table):
                     seed=23)  # fmt: skip
     rng = np.random.default_rng(24)
     shared = np.repeat(rng.standard_normal((n, 6)) * ([REP_POS] * 3 + [REP_ANG] * 3), k, 0)
-    return dataclasses.replace(d, measured=d.measured + shared, sigma=None), k
+    return dataclasses.replace(d, measured=d.measured + shared, sigma=None), k, true
 
 
 def test_a_stop_read_several_times_is_fitted_once_at_its_mean(table, read_four_times):
@@ -112,7 +112,7 @@ def test_a_stop_read_several_times_is_fitted_once_at_its_mean(table, read_four_t
     scatter about the model beyond it the table's repeatability (3 µm, 0.6″). A glitch in
     one reading is set aside in its row before the mean. `diagnose` and `validate` fit and
     predict the stops' means too."""
-    d, k = read_four_times
+    d, k, _ = read_four_times
     st = setup(table, d, jt.GEOMETRY)
     assert structure_test(fit(st), st).p_value < 0.01
     st, cal = fit_screened(table, d, jt.GEOMETRY)
@@ -136,3 +136,40 @@ def test_a_stop_read_several_times_is_fitted_once_at_its_mean(table, read_four_t
     assert diag.stops is not None and diag.as_json()["stops_read_more_than_once"]["stops"] == 50
     v = jt.validate(jt.fitted_model(cal, table, d.sessions), d)
     assert v.rows_predicted == 50 and v.stops.per_stop == k
+
+
+def test_a_model_fitted_on_stop_means_predicts_single_readings_at_their_noise(
+    table, read_four_times, tmp_path
+):
+    """The model file of a fit on stops read 4 times keeps k and the scatter within stops
+    (`readings_per_stop`, `noise_within`), so that `validate` knows the σ of a reading that
+    is the mean of any number of a stop's readings: √(σ_r² + σ_within² / k). Day 2 on the
+    same table, each stop read once (60 stops) or 4 times: the model holds, the ratio at
+    its expected value. Without those keys single readings were compared with the noise of
+    a mean of four (3.9 µm against their 5.8, 1.2″ against 2.1″): the model was called
+    wrong."""
+    d, k, true = read_four_times
+    st, cal = fit_screened(table, d, jt.GEOMETRY)
+    path = jt.save_fitted_model(jt.fitted_model(cal, table, d.sessions), tmp_path / "m.toml")
+    model = jt.load_fitted_model(path)
+    ins = model.instrument
+    assert ins.readings_per_stop == k
+    within = cal.stops.within
+    np.testing.assert_allclose(ins.noise_within, [within["positions"][0]] * 3
+                               + [within["angles"][0]] * 3, rtol=1e-12)  # fmt: skip
+    rng = np.random.default_rng(31)
+    for reads in (1, k):
+        plan = np.repeat(jt.plan_random(60, 32), reads, axis=0)
+        day2 = jt.simulate(table, true, plan, jt.tracker6(), seed=33)
+        scale = [REP_POS] * 3 + [REP_ANG] * 3
+        shared = np.repeat(rng.standard_normal((60, 6)) * scale, reads, axis=0)
+        day2 = dataclasses.replace(day2, measured=day2.measured + shared, sigma=None)
+        v = jt.validate(model, day2)
+        for g, (ratio, expected, bound) in v.noise_groups.items():
+            assert ratio < bound and abs(ratio / expected - 1) < 0.2, (reads, g, ratio, expected)
+        if reads == 1:
+            blind = dataclasses.replace(ins, noise_within=np.full(6, np.nan))
+            v = jt.validate(dataclasses.replace(model, instrument=blind), day2)
+            assert any(r > b for r, _, b in v.noise_groups.values()), v.noise_groups
+            ratio, expected, _ = v.noise_groups["positions"]
+            assert ratio > 1.25 * expected, v.noise_groups  # √(34 / 15.25) = 1.49 expected

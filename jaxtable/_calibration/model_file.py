@@ -14,6 +14,11 @@ It is a table file (DESIGN.md schema) with three more kinds of table:
     noise = [σx, σy, σz, σroll, σpitch, σyaw]   the noise σ the fit found per measured
     noise_std = [...]                           column (mm / deg; nan: not measured), its σ,
     noise_leverage = [...]                      and the share of the readings the fit took
+    readings_per_stop = k                       where the fit's file read its stops k times
+    noise_within = [...]                        (consecutive rows, one command): the median
+                                                k, and the scatter of a stop's readings
+                                                about their mean per column (`noise` is then
+                                                that of a stop's mean)
     [instrument.frames."LABEL"]                 one per session label
     pose = [x, y, z, roll, pitch, yaw]          pose of the base frame in the instrument frame
     sigma = [...]
@@ -56,6 +61,27 @@ class InstrumentFrames:
     # (6,) the mean leverage H_ii of the column's readings in the fit (the share of them its
     # parameters took): new stops like the fit's are predicted at about σ √(1 + leverage)
     noise_leverage: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
+    # where the fit's file read each stop k times (`stops.merge_stops`): the median k, and
+    # the σ of a stop's readings about their mean per column (`noise` is then a mean's:
+    # the table's repeatability σ_r² = noise² − noise_within² / k); 1 and NaN otherwise
+    readings_per_stop: float = 1.0
+    noise_within: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
+
+    def stop_noise(self, counts) -> np.ndarray:
+        """(M, 6) σ of a reading that is the mean of `counts` (M, 6) readings of one stop
+        (mm / rad): √(σ_r² + noise_within² / count) where the fit's file read its stops
+        several times; `noise` itself otherwise (a mean of several readings is then
+        predicted no better than one reading: the split of `noise` into the table's
+        repeatability and the instrument's is unknown)."""
+        counts = np.maximum(np.asarray(counts, float), 1.0)
+        noise = np.broadcast_to(np.asarray(self.noise, float), counts.shape)
+        within = np.asarray(self.noise_within, float)
+        if not np.isfinite(within).any():
+            return noise.copy()
+        rep2 = np.maximum(
+            np.asarray(self.noise, float) ** 2 - within**2 / self.readings_per_stop, 0
+        )
+        return np.where(np.isfinite(within), np.sqrt(rep2 + within**2 / counts), noise)
 
 
 @dataclass
@@ -90,12 +116,24 @@ def instrument_frames(cal: Calibration, sessions: list[str]) -> InstrumentFrames
     lay = cal.layout
     frames = {lab: np.asarray(cal.frame[k], float) for k, lab in enumerate(sessions)}
     frame_sigma = {lab: sigma(f"frame[{k + 1}]", lay.frame_dofs) for k, lab in enumerate(sessions)}
+    noise, noise_std, lev = column_noise(cal)
+    k, within = 1.0, np.full(6, np.nan)
+    if cal.stops is not None and cal.stops.stops > 0:
+        k = float(cal.stops.per_stop)
+        for g, cols in (("positions", slice(0, 3)), ("angles", slice(3, 6))):
+            s = cal.stops.within.get(g, (None, 0))[0]
+            if s is not None:
+                within[cols] = np.where(np.isfinite(noise[cols]), s, np.nan)
     return InstrumentFrames(
         np.asarray(cal.target, float),
         sigma("target", lay.target_dofs),
         frames,
         frame_sigma,
-        *column_noise(cal),
+        noise,
+        noise_std,
+        lev,
+        k,
+        within,
     )
 
 
@@ -149,6 +187,9 @@ def model_to_toml(model: FittedModel, header: str = "") -> str:
             text += f"noise = {toml_value(params.pose_to_file(ins.noise))}\n"
             text += f"noise_std = {toml_value(params.pose_to_file(ins.noise_std))}\n"
             text += f"noise_leverage = {toml_value(ins.noise_leverage)}\n"
+        if np.isfinite(ins.noise_within).any():
+            text += f"readings_per_stop = {toml_value(float(ins.readings_per_stop))}\n"
+            text += f"noise_within = {toml_value(params.pose_to_file(ins.noise_within))}\n"
         for label, pose in ins.frames.items():
             key = label.replace("\\", "\\\\").replace('"', '\\"')
             text += f'\n[instrument.frames."{key}"]\n'
@@ -213,5 +254,13 @@ def load_fitted_model(path) -> FittedModel:
                 f"{w}: 'noise' must be positive, 'noise_std' not negative, 'noise_leverage' "
                 "within 0..1"
             )
-        instrument = InstrumentFrames(target, tsig, frames, sigmas, noise, noise_std, lev)
+        within = vec(sec, "noise_within", w, np.full(6, np.nan))
+        k = sec.get("readings_per_stop", 1.0)
+        if not isinstance(k, (int, float)) or isinstance(k, bool) or not k >= 1:
+            raise TableFileError(f"{w}: 'readings_per_stop' must be a number ≥ 1; got {k!r}")
+        if np.any(within <= 0):
+            raise TableFileError(f"{w}: 'noise_within' must be positive")
+        instrument = InstrumentFrames(
+            target, tsig, frames, sigmas, noise, noise_std, lev, float(k), within
+        )
     return FittedModel(table, effects, instrument, nominal)

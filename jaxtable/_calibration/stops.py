@@ -39,6 +39,9 @@ class Stops:
     per_stop: float
     within: dict
     set_aside: list = field(default_factory=list)  # `outliers.GrossError`s within stops
+    # (N, 6) the readings of each column merged into each row (1 where a row was read once,
+    # 0 where not read or merged into another row)
+    counts: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def words(self, sigma: dict | None = None) -> str:
         """In words; with `sigma` {group: σ of a stop's mean about the fitted model}, the
@@ -259,14 +262,17 @@ def merge_stops(data, screen: bool = True):
                 cnt[stop[carry]] > 0, sums[stop[carry]] / np.maximum(cnt[stop[carry]], 1), v[carry]
             )
             changes[name] = v
+    counts = np.zeros(measured.shape)
+    counts[carry] = k[stop[carry]]
     multi = count > 1
     if not multi.any():  # the glitches left one reading a stop
-        return replace(data, **changes), Stops(0, 0, 1.0, within, set_aside=glitches)
+        return replace(data, **changes), Stops(0, 0, 1.0, within, glitches, counts)
     info = Stops(
         stops=int(multi.sum()),
         rows=int(count[multi].sum()),
         per_stop=float(np.median(count[multi])),
         within=within,
         set_aside=glitches,
+        counts=counts,
     )
     return replace(data, **changes), info

@@ -296,7 +296,8 @@ def validate_model(
     }
     # a registration row's own residual is smaller by its share: in-sample
     share = np.where(registered, -frame_leverage, frame_leverage)
-    ratio, groups = _noise_ratio(residual[scored], ins, share[scored])
+    counts = np.ones((n, 6)) if stops is None else stops.counts
+    ratio, groups = _noise_ratio(residual[scored], ins, share[scored], counts[scored])
     leg_residual = leg_rms = None
     if mask[scored].all():
         full = mask.all(axis=1)
@@ -330,19 +331,21 @@ def validate_model(
 BOUND_Z = 3.09  # one-sided 99.9 % of a normal: `Validation.noise_groups`' bound
 
 
-def _noise_ratio(residual: np.ndarray, ins, frame_share=None) -> tuple[dict, dict]:
+def _noise_ratio(residual: np.ndarray, ins, frame_share=None, counts=None) -> tuple[dict, dict]:
     """({column: RMS / noise σ}, {group: (ratio, expected, bound)}) of residuals (M, 6)
     (mm / rad, NaN where not measured), for the columns whose noise `ins` holds
     (`Validation`). `frame_share` (M,): the leverage a registered frame adds to each row's
     expected e² / σ² (p / m for a row predicted through a frame registered with p degrees
     of freedom on m readings, −p / m for a row of the registration itself; 0 for a stored
-    frame)."""
+    frame). `counts` (M, 6): the readings each row's reading is the mean of (a stop read
+    several times), for its σ (`InstrumentFrames.stop_noise`); None: one each."""
     if ins is None:
         return {}, {}
     frame_share = None if frame_share is None else np.asarray(frame_share, float)
     sigma, sd = np.asarray(ins.noise, float), np.asarray(ins.noise_std, float)
     lev = np.asarray(ins.noise_leverage, float)
-    z = residual / sigma  # NaN where not measured or no σ
+    counts = np.ones(residual.shape) if counts is None else counts
+    z = residual / ins.stop_noise(counts)  # NaN where not measured or no σ
     ratio = {
         c: float(np.sqrt(np.nanmean(z[:, k] ** 2)))
         for k, c in enumerate(params.POSE)

@@ -836,7 +836,7 @@ def diagnose(
                 dataclasses.replace(sp, heldout_rms_before=before, heldout_rms_after=after)
                 for sp in splits
             ]
-        diag.stops = stops
+        diag.stops = diag.final.stops = stops
         if outliers == "keep":
             return diag
         diag.set_aside = sorted(set_aside, key=lambda g: -abs(g.z))
