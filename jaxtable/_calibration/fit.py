@@ -1618,7 +1618,11 @@ def calibrate(
     and a stated σ is tested against it) or "fixed" (trust the stated σ); see `fit`.
     `outliers`: "set_aside" (default: readings the fit cannot reconcile with the rest are
     found by data snooping with a robust scale, set aside as not measured, and the model
-    refitted; `Calibration.set_aside` names them; see `outliers`) or "keep".
+    refitted; `Calibration.set_aside` names them; see `outliers`; rows that repeat an
+    earlier row to the last digit are set aside before any fit, `Calibration.repeated`)
+    or "keep". A stop read in several consecutive rows (one command) is fitted once, at the
+    mean of its readings (`stops.merge_stops`; `Calibration.stops` reports the noise within
+    stops and the table's repeatability; `Calibration.data` is the data as fitted).
     `prior`: a tolerance budget (`Tolerances`, e.g. `jt.Tolerances()` for the paper's, or
     `jt.load_tolerances(path)`): the table as built is the nominal one within it, a Gaussian
     prior on the joints, zero lengths, lead-scale error and spiral lead
