@@ -70,7 +70,8 @@ class Stops:
         if sigma:
             text += (
                 " (a stated σ below is that of a stop's mean, σ / √k: the table's "
-                "repeatability is not in it)"
+                "repeatability is not in it; rows of one command with a move between them, "
+                "a pose approached again, put the repeatability in the scatter within)"
             )
         return text
 
