@@ -23,6 +23,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .._rotation import wrap_reading_difference
+
 GROUPS = {"positions": slice(0, 3), "angles": slice(3, 6)}
 
 
@@ -111,6 +113,22 @@ def stop_index(data) -> np.ndarray:
     return np.cumsum(new) - 1
 
 
+def _about_stop(measured, stop):
+    """Each reading against a reading of its stop: (read (N, 6) bool, k (S, 6) readings of
+    each column a stop, dev (N, 6) the reading minus its stop's reference (angles wrapped;
+    0 where not read), total (S, 6) the sum of dev a stop, ref (S, 6) the reference: the
+    stop's first row (0 where that row did not read the column))."""
+    read = np.isfinite(measured)
+    base = np.where(read, measured, 0.0)
+    ref = np.zeros((stop.max() + 1, 6))
+    ref[stop[::-1]] = base[::-1]  # the last assignment wins: each stop's first row
+    dev = np.where(read, wrap_reading_difference(base - ref[stop]), 0.0)
+    k, total = np.zeros_like(ref), np.zeros_like(ref)
+    np.add.at(k, stop, read.astype(float))
+    np.add.at(total, stop, dev)
+    return read, k, dev, total, ref
+
+
 def within_stop_errors(data, stop, alpha=None) -> list:
     """`outliers.GrossError`s: readings far from the other readings of their stop, in stops
     read at least three times (with two, either could be the one). A reading's deviation
@@ -127,20 +145,9 @@ def within_stop_errors(data, stop, alpha=None) -> list:
 
     alpha = ALPHA if alpha is None else alpha
     measured = np.asarray(data.measured, float)
-    read = np.isfinite(measured)
     found = []
     for _ in range(10):  # rounds: a few glitches in a stop at most
-        base = np.where(read, measured, 0.0)
-        nstop = stop.max() + 1
-        k = np.zeros((nstop, 6))
-        total = np.zeros((nstop, 6))
-        np.add.at(k, stop, read.astype(float))
-        ref = np.zeros((nstop, 6))
-        ref[stop[::-1]] = base[::-1]  # a reading of each stop (angles about it)
-        dev = base - ref[stop]
-        dev[:, 3:] = np.mod(dev[:, 3:] + np.pi, 2 * np.pi) - np.pi
-        dev = np.where(read, dev, 0.0)
-        np.add.at(total, stop, dev)
+        read, k, dev, total, _ = _about_stop(measured, stop)
         kk = k[stop]
         tested = read & (kk >= 3)
         if not tested.any():
@@ -168,27 +175,20 @@ def within_stop_errors(data, stop, alpha=None) -> list:
             rows = np.flatnonzero(stop == s)
             r, c = np.unravel_index(np.argmax(over[rows]), (len(rows), 6))
             r = rows[r]
-            value = dev[r, c] - others[r, c]
-            new.append(
-                GrossError(
-                    int(r) + 1,
-                    POSE_COLUMNS[c],
-                    float(value if c < 3 else np.rad2deg(value)),
-                    float(z[r, c]),
-                )
-            )
+            new.append(GrossError(int(r) + 1, POSE_COLUMNS[c], np.nan, float(z[r, c])))
             read[r, c] = False
         found += new
         measured = np.where(read, measured, np.nan)
     # each with its whole error: the reading against the mean of its stop's readings kept
+    _, k, _, total, ref = _about_stop(measured, stop)
     original = np.asarray(data.measured, float)
     for i, g in enumerate(found):
         r, c = g.row - 1, POSE_COLUMNS.index(g.column)
-        kept = measured[stop == stop[r], c]
-        d = original[r, c] - kept[np.isfinite(kept)]
-        if c >= 3:
-            d = np.rad2deg(np.mod(d + np.pi, 2 * np.pi) - np.pi)
-        found[i] = replace(g, residual=float(np.mean(d)))
+        d = (
+            wrap_reading_difference(original[r] - ref[stop[r]])[c]
+            - total[stop[r], c] / k[stop[r], c]
+        )
+        found[i] = replace(g, residual=float(d if c < 3 else np.rad2deg(d)))
     return sorted(found, key=lambda g: -abs(g.z))
 
 
@@ -209,7 +209,7 @@ def merge_stops(data, screen: bool = True):
     if glitches:
         data = without(data, glitches)
     measured = np.asarray(data.measured, float)
-    read = np.isfinite(measured)
+    read, k, dev, total, ref = _about_stop(measured, stop)
     has = read.any(axis=1)
     count = np.bincount(stop[has], minlength=stop.max() + 1)
     n = len(stop)
@@ -217,22 +217,13 @@ def merge_stops(data, screen: bool = True):
     first = np.full(stop.max() + 1, n)
     np.minimum.at(first, stop[has], np.flatnonzero(has))
     lead = first[stop]  # (N,) the carrying row of each row's stop
-    base = np.where(read, measured, 0.0)
-    ref = base[np.minimum(lead, n - 1)]
-    dev = base - ref
-    dev[:, 3:] = np.mod(dev[:, 3:] + np.pi, 2 * np.pi) - np.pi  # angles about the first
-    dev = np.where(read, dev, 0.0)
-    k = np.zeros((stop.max() + 1, 6))
-    total = np.zeros((stop.max() + 1, 6))
-    np.add.at(k, stop, read.astype(float))
-    np.add.at(total, stop, dev)
     mean_dev = np.divide(total, k, out=np.zeros_like(total), where=k > 0)
     carry = np.unique(lead[has])
     merged = measured.copy()
     out_rows = has & (np.arange(n) != lead)
     merged[out_rows] = np.nan
-    merged[carry] = np.where(k[stop[carry]] > 0, ref[carry] + mean_dev[stop[carry]], np.nan)
-    merged[carry, 3:] = np.mod(merged[carry, 3:] + np.pi, 2 * np.pi) - np.pi
+    mean = wrap_reading_difference(ref + mean_dev)  # angles back to [−π, π)
+    merged[carry] = np.where(k[stop[carry]] > 0, mean[stop[carry]], np.nan)
     # the scatter about the stop's mean: pure error, per group
     resid = np.where(read, dev - mean_dev[stop], 0.0)
     within = {}
