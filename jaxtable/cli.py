@@ -750,7 +750,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser(
         "validate",
         help="predict measured data with a fitted model file (calibrated_table.toml): stored "
-        "frames for known sessions, a new session's frame registered on its first N rows",
+        "frames for known sessions, a new session's frame registered on its first N stops",
     )
     sp.add_argument("model", type=Path, help="fitted model file (calibrate / diagnose --out)")
     sp.add_argument("data", type=Path, help="measurement CSV")
@@ -760,8 +760,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--register",
         type=_whole(1),
         default=None,
-        help="rows at the start of each new session that register its frame; the rest are "
-        "predicted (default: all rows, which makes the result a fit, not a prediction)",
+        help="stops at the start of each new session that register its frame (a row a "
+        "stop; consecutive rows of one command, a stop read several times, count once); the "
+        "rest are predicted (default: all rows, which makes the result a fit, not a "
+        "prediction)",
     )
     sp.add_argument("--json", default=None, help="JSON result (default: OUT/validation.json)")
     compensation(sp)

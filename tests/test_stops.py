@@ -173,3 +173,39 @@ def test_a_model_fitted_on_stop_means_predicts_single_readings_at_their_noise(
             assert any(r > b for r, _, b in v.noise_groups.values()), v.noise_groups
             ratio, expected, _ = v.noise_groups["positions"]
             assert ratio > 1.25 * expected, v.noise_groups  # √(34 / 15.25) = 1.49 expected
+
+
+def test_a_new_session_read_several_times_a_stop_registers_on_its_first_n_stops(
+    table, read_four_times
+):
+    """`validate --register N` on a new session whose stops are read 4 times registers its
+    frame on the first N stops, as on a file of one row a stop holding their means: the
+    same frame, the same stops registered and predicted and the same RMS. Counted in rows,
+    the 10 rows of the first 2.5 stops registered 3 of them (the frame on 3 stop means)."""
+    d, k, true = read_four_times
+    st, cal = fit_screened(table, d, jt.GEOMETRY)
+    model = jt.fitted_model(cal, table, d.sessions)
+    n = 40
+    frame = np.array([30.0, -20.0, 5.0, 0.02, -0.01, 0.3])  # a tracker set up anew (mm, rad)
+    day2 = jt.simulate(table, true, np.repeat(jt.plan_random(n, 41), k, axis=0), jt.tracker6(),
+                       frame=frame, session="day 2", seed=42)  # fmt: skip
+    shared = np.repeat(np.random.default_rng(43).standard_normal((n, 6)), k, axis=0)
+    day2 = dataclasses.replace(
+        day2,
+        measured=day2.measured + shared * ([REP_POS] * 3 + [REP_ANG] * 3),
+        sigma=None,
+    )
+    means = jt.Measurements(
+        cmd_pose=day2.cmd_pose[::k],
+        measured=day2.measured.reshape(-1, k, 6).mean(1),
+        cmd_lengths=day2.cmd_lengths[::k],
+        session=np.full(n, "day 2"),
+    )
+    v, ref = jt.validate(model, day2, register=10), jt.validate(model, means, register=10)
+    assert (v.rows_registered, v.rows_predicted) == (ref.rows_registered, ref.rows_predicted)
+    assert (v.rows_registered, v.rows_predicted) == (10, n - 10)
+    assert v.registered.reshape(n, k)[:, 0].tolist() == [True] * 10 + [False] * (n - 10)
+    pose, ref_pose = v.frames["day 2"]["pose"], ref.frames["day 2"]["pose"]
+    np.testing.assert_allclose(pose, ref_pose, rtol=0, atol=1e-9)
+    for c, rms in ref.rms.items():
+        assert v.rms[c] == pytest.approx(rms, rel=1e-9), c

@@ -5,9 +5,10 @@ pose q for the commanded lengths (converted to actuator extensions with the cont
 nominal L0 stored in the model file); the instrument reads q through its frame and the
 target offset. A session label the model knows uses its stored frame, so every row is a
 prediction. A new session (a tracker set up anew) has its frame registered on its first
-`register` rows, target kept from the model, and the rest are predicted; with no `register`
-(default) every row of a new session is used for the registration and the result is a fit,
-not a prediction.
+`register` stops (rows in a file of one row a stop; a stop read several times, consecutive
+rows of one command, counts once), target kept from the model, and the rest are predicted;
+with no `register` (default) every row of a new session is used for the registration and the
+result is a fit, not a prediction.
 """
 
 import warnings
@@ -49,7 +50,7 @@ from .measurements import (
 )
 from .model_file import FittedModel, load_fitted_model
 from .outliers import prescreen
-from .stops import merge_stops
+from .stops import merge_stops, stop_index
 
 
 @dataclass
@@ -207,12 +208,13 @@ def validate_model(
     compensated: bool | None = None,
     nominal: Table | None = None,
 ) -> Validation:
-    """Predict `data` with a fitted `model` (see the module docstring). `register`: rows at
-    the start of each new session used to register its frame (None: all of them, a fit);
+    """Predict `data` with a fitted `model` (see the module docstring). `register`: stops at
+    the start of each new session used to register its frame (`stops.stop_index`: a stop
+    read several times counts once; None: all of them, a fit);
     `compensated`, `nominal`: only for data without cmd_l columns, the controller's
     compensation (stated, on a table with a lead) and its nominal table."""
     if register is not None and register < 1:
-        raise ValueError(f"--register must be a positive number of rows; got {register}")
+        raise ValueError(f"--register must be a positive number of stops; got {register}")
     require_measured(data)
     check_units(data)
     check_angle_convention(data)
@@ -256,6 +258,9 @@ def validate_model(
     frame_leverage = np.zeros(n)
     registered = np.zeros(n, bool)
     info = {}
+    # a session's first `register` stops: a stop read several times is one (its mean, in its
+    # first row); counted in rows, N rows of a stop read k times registered N / k stops
+    stop = stop_index(data)
     radius = float(platform_radius(table))
     base_reading = np.asarray(readings(q, np.zeros((n, 6)), target))
     for label in data.sessions:
@@ -264,7 +269,8 @@ def validate_model(
             frame = np.asarray(ins.frames[label], float)
             info[label] = {"source": "stored", "rows_registered": 0}
         else:
-            use = rows if register is None else rows[:register]
+            first = np.unique(stop[rows])[: register or len(rows)]  # in row order
+            use = rows[np.isin(stop[rows], first)]
             use = use[mask[use].any(axis=1)]
             if len(use) == 0:
                 raise ValueError(f"session '{label}': no measured row to register its frame on")
