@@ -390,9 +390,12 @@ def _validate(args) -> int:
     out = Path(args.out)
     json_path = Path(args.json) if args.json else out / "validation.json"
     paths = write_validation_report(v, out, str(args.model), str(args.data), json_path)
-    kind = "predicted" if v.is_prediction else "FIT, not a prediction: every row registered"
+    kind = "prediction" if v.is_prediction else "FIT, not a prediction: every row registered"
+    unit = "rows" if v.stops is None else "stops"
+    means = "" if v.stops is None else " (a stop read several times: the mean of its readings)"
     print(
-        f"{kind}: {v.rows_predicted} rows predicted, {v.rows_registered} registered; RMS "
+        f"{kind}: {v.rows_predicted} {unit} predicted, {v.rows_registered} registered{means}; "
+        "RMS "
         + ", ".join(f"{c} {r:.4g}" for c, r in v.rms.items())
         + ("" if v.leg_rms is None else f"; legs {v.leg_rms:.4g} mm")
     )

@@ -13,6 +13,7 @@ import jaxtable as jt
 from jaxtable._calibration.fit import fit, fit_screened, setup
 from jaxtable._calibration.stops import merge_stops, stop_index, within_stop_errors
 from jaxtable._discovery.structure import structure_test
+from jaxtable.cli import main
 
 POS, ANG = 0.005, np.deg2rad(2 / 3600)  # the tracker's σ per reading
 REP_POS, REP_ANG = 0.003, np.deg2rad(0.6 / 3600)  # the table's error at a stop
@@ -176,12 +177,13 @@ def test_a_model_fitted_on_stop_means_predicts_single_readings_at_their_noise(
 
 
 def test_a_new_session_read_several_times_a_stop_registers_on_its_first_n_stops(
-    table, read_four_times
+    table, read_four_times, tmp_path, capsys
 ):
     """`validate --register N` on a new session whose stops are read 4 times registers its
     frame on the first N stops, as on a file of one row a stop holding their means: the
     same frame, the same stops registered and predicted and the same RMS. Counted in rows,
-    the 10 rows of the first 2.5 stops registered 3 of them (the frame on 3 stop means)."""
+    the 10 rows of the first 2.5 stops registered 3 of them (the frame on 3 stop means).
+    The command line says stops."""
     d, k, true = read_four_times
     st, cal = fit_screened(table, d, jt.GEOMETRY)
     model = jt.fitted_model(cal, table, d.sessions)
@@ -209,3 +211,8 @@ def test_a_new_session_read_several_times_a_stop_registers_on_its_first_n_stops(
     np.testing.assert_allclose(pose, ref_pose, rtol=0, atol=1e-9)
     for c, rms in ref.rms.items():
         assert v.rms[c] == pytest.approx(rms, rel=1e-9), c
+    model_path = jt.save_fitted_model(model, tmp_path / "m.toml")
+    jt.save_measurements(day2, tmp_path / "day2.csv")
+    argv = ["validate", str(model_path), str(tmp_path / "day2.csv"), "--register", "10"]
+    assert main([*argv, "--out", str(tmp_path / "v")]) == 0
+    assert "prediction: 30 stops predicted, 10 registered (a stop read" in capsys.readouterr().out

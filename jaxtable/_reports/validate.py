@@ -71,8 +71,9 @@ def markdown(v: Validation, model_source: str, data_source: str, figures) -> str
     lines = [
         f"# Validation of {model_source} on {data_source}",
         "",
-        f"Result: **{kind}**. Rows used to register a new session's frame: "
-        f"{v.rows_registered}; rows predicted: {v.rows_predicted}.",
+        f"Result: **{kind}**. {'Rows' if v.stops is None else 'Stops'} used to register a "
+        f"new session's frame: {v.rows_registered}; predicted: {v.rows_predicted}"
+        + ("." if v.stops is None else " (a stop read several times is the mean of its readings)."),
         "",
         "| column | RMS (measured − predicted) | RMS / the fit's noise σ |",
         "|---|---|---|",
