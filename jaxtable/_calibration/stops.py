@@ -41,6 +41,14 @@ class Stops:
     per_stop: float
     within: dict
     set_aside: list = field(default_factory=list)  # `outliers.GrossError`s within stops
+    # {group: `Trend`}: whether the readings of a stop move with their order (`trend_test`),
+    # of the readings as read; `early` (row, column) pairs (0-based) of each stop's first
+    # readings left out for it (`settled`), `early_rounds` how many a stop; `trend_after`
+    # the test of the readings kept
+    trend: dict = field(default_factory=dict)
+    early: list = field(default_factory=list)
+    early_rounds: int = 0
+    trend_after: dict = field(default_factory=dict)
     # (N, 6) the readings of each column merged into each row (1 where a row was read once,
     # 0 where not read or merged into another row)
     counts: np.ndarray | None = field(default=None, repr=False, compare=False)
@@ -69,6 +77,34 @@ class Stops:
             parts.append(part)
         if parts:
             text += "; the readings of a stop scatter about their mean by " + "; ".join(parts)
+        moving = [t.words(g) for g, t in self.trend.items() if t.found]
+        if moving:
+            found = {n for t in self.trend.values() for n in t.found}
+            text += (
+                ". The readings of a stop move with their order ("
+                + "; ".join(moving)
+                + "): a stop's mean then depends on when it was read"
+            )
+            if self.early_rounds:
+                after = [f"{g} p = {t.varying[2]:.2g}" for g, t in self.trend_after.items()]
+                rows = len({r for r, _ in self.early})
+                text += (
+                    f"; the first {self.early_rounds} reading(s) of each stop read three times "
+                    f"or more were left out ({rows} rows), as not settled: the readings kept "
+                    "show no trend that differs from stop to stop ("
+                    + ", ".join(after)
+                    + f", against {trend_bound(len(self.trend_after)):.2g})"
+                )
+            elif "varying" in found:
+                text += (
+                    "; take the readings once the table has settled, or leave out a stop's "
+                    "first readings"
+                )
+            if "common" in found:
+                text += (
+                    "; an instrument that drifts while it reads drifts between the stops too "
+                    "(the drift in time that diagnose tests)"
+                )
         if sigma:
             text += (
                 " (a stated σ below is that of a stop's mean, σ / √k: the table's "
@@ -85,6 +121,8 @@ class Stops:
             "rows": self.rows,
             "per_stop": self.per_stop,
             "within_sigma": {g: _unit(g, s) for g, (s, _) in self.within.items()},
+            "trend_within_stops": {g: t.as_json(g) for g, t in self.trend.items()},
+            "first_readings_left_out": self.early_rounds,
         }
         if sigma:
             out["repeatability"] = {
@@ -99,6 +137,167 @@ def _unit(group, value):
     if value is None:
         return None
     return float(value) if group == "positions" else float(np.rad2deg(value))
+
+
+TREND_ALPHA = 0.01
+"""Family-wise false-alarm rate of `trend_test` over the column groups it tests."""
+
+
+def trend_bound(groups: int) -> float:
+    """The p-value under which `trend_test` calls a part found: `TREND_ALPHA` shared by the
+    two parts of each of the `groups` groups tested."""
+    return TREND_ALPHA / (2 * max(groups, 1))
+
+
+@dataclass(frozen=True)
+class Trend:
+    """`trend_test` for one column group. The readings' straight line in their order within
+    each stop splits into `common`, one slope a column shared by every stop (an instrument
+    drifting while it reads), and `varying`, the stops' own slopes about it (a table still
+    settling after each move: its direction changes from move to move); each is (F, dof,
+    p) against the scatter about the lines (`dof_rest`). `change` / `drift`: the RMS change
+    from a stop's first reading to its last, of the stops' lines / of the common one (mm or
+    rad); `found`: which of "common", "varying" have p under their share of `TREND_ALPHA`."""
+
+    common: tuple
+    varying: tuple
+    dof_rest: int
+    change: float
+    drift: float
+    found: tuple
+
+    def words(self, group: str) -> str:
+        unit, f = ("µm", 1e3) if group == "positions" else ("arcsec", np.rad2deg(1) * 3600)
+        parts = []
+        if "varying" in self.found:
+            F, dof, p = self.varying
+            parts.append(
+                f"differently from stop to stop, {self.change * f:.3g} {unit} RMS from a "
+                f"stop's first reading to its last (F = {F:.3g} on {dof} and {self.dof_rest} "
+                f"dof, p = {p:.2g}): the table still settling after each move"
+            )
+        if "common" in self.found:
+            F, dof, p = self.common
+            parts.append(
+                f"the same way at every stop, {self.drift * f:.3g} {unit} from the first "
+                f"reading to the last (F = {F:.3g} on {dof} and {self.dof_rest} dof, "
+                f"p = {p:.2g}): the instrument drifting while it reads"
+            )
+        return f"{group}: " + "; ".join(parts)
+
+    def as_json(self, group: str) -> dict:
+        def part(t):
+            return {"F": t[0], "dof": [t[1], self.dof_rest], "p_value": t[2]}
+
+        return {
+            "found": list(self.found),
+            "varying": part(self.varying),
+            "common": part(self.common),
+            "first_to_last": _unit(group, self.change),
+            "common_first_to_last": _unit(group, self.drift),
+        }
+
+
+def trend_test(resid, read, stop, k) -> dict:
+    """{group: `Trend`}: whether the readings of a stop move with the order they were taken
+    in (a table that had not settled when the first were taken, an instrument drifting while
+    it read), where the readings of a stop should be exchangeable (the table holds still and
+    its error at the stop is shared by them all). Per column of a stop read k ≥ 3 times, the
+    scatter of its readings about their mean (k − 1 dof) splits into a straight line in the
+    reading's order (1 dof) and the rest (k − 2 dof); over a group's stops, the lines split
+    into one slope a column shared by every stop and the stops' own slopes about it. Each
+    part's mean square over the rest's is F-distributed for readings with independent
+    normal noise, whatever their σ and whatever the instrument's frame (each column on its
+    own); the two parts of each group share `TREND_ALPHA` equally. `resid` (N, 6): each
+    reading minus its stop's mean (0 where not read); `read` (N, 6); `stop` (N,)
+    nondecreasing; `k` (S, 6) readings a stop."""
+    from scipy.stats import f as f_dist
+
+    # each reading's place among its stop's readings of its column, centred: the line's x
+    upto = np.cumsum(read, axis=0)
+    first = np.searchsorted(stop, np.arange(k.shape[0]))
+    before = np.where(first[:, None] > 0, upto[np.maximum(first - 1, 0)], 0)
+    kk = k[stop]
+    line_x = np.where(read & (kk >= 3), upto - before[stop] - 1 - (kk - 1) / 2, 0.0)
+    xy, xx, yy = np.zeros_like(k), np.zeros_like(k), np.zeros_like(k)
+    np.add.at(xy, stop, line_x * resid)
+    np.add.at(xx, stop, line_x * line_x)
+    np.add.at(yy, stop, np.where(read & (kk >= 3), resid, 0.0) ** 2)
+    tested = k >= 3
+    slope = np.divide(xy, xx, out=np.zeros_like(xy), where=xx > 0)
+    groups = [g for g, cols in GROUPS.items() if tested[:, cols].any()]
+    alpha = trend_bound(len(groups))
+    out = {}
+    for g in groups:
+        cols = GROUPS[g]
+        t = tested[:, cols]
+        lines = float(np.sum((slope * xy)[:, cols][t]))
+        rest = float(yy[:, cols][t].sum()) - lines
+        d_rest = int(np.sum(k[:, cols][t] - 2))
+        # one slope a column: Σ xy / Σ xx over the stops that test it
+        sxy = np.where(t, xy[:, cols], 0.0).sum(0)
+        sxx = np.where(t, xx[:, cols], 0.0).sum(0)
+        ok = sxx > 0
+        common = float(np.sum(sxy[ok] ** 2 / sxx[ok]))
+        d_common, d_varying = int(ok.sum()), int(t.sum()) - int(ok.sum())
+        if d_rest == 0 or rest <= 0:
+            continue
+        parts = {}
+        for name, ss, dof in (("common", common, d_common), ("varying", lines - common, d_varying)):
+            F = (ss / dof) / (rest / d_rest) if dof > 0 else float("nan")
+            parts[name] = (float(F), dof, float(f_dist.sf(F, dof, d_rest)) if dof > 0 else 1.0)
+        span = np.where(t, k[:, cols] - 1, 0)
+        pooled = np.divide(sxy, sxx, out=np.zeros_like(sxy), where=ok)
+        out[g] = Trend(
+            common=parts["common"],
+            varying=parts["varying"],
+            dof_rest=d_rest,
+            change=float(np.sqrt(np.mean((slope[:, cols] * span)[t] ** 2))),
+            drift=float(np.sqrt(np.mean((pooled * np.median(span[t])) ** 2))),
+            found=tuple(n for n in ("varying", "common") if parts[n][2] < alpha),
+        )
+    return out
+
+
+def _trend(measured, stop):
+    """`trend_test` of the readings `measured` (N, 6) in stops `stop`."""
+    read, k, dev, total, _ = _about_stop(measured, stop)
+    mean = np.divide(total, k, out=np.zeros_like(total), where=k > 0)
+    return trend_test(np.where(read, dev - mean[stop], 0.0), read, stop, k)
+
+
+def settled(data, stop):
+    """(data, {group: `Trend`} as read, left out [(row, column)], rounds, {group: `Trend`}
+    of the readings kept): while the readings of the stops move with their order differently
+    from stop to stop (`Trend.found` "varying": a table that had not settled when the first
+    were taken), the first reading of each stop read three times or more is left out, and
+    the rest tested again. Readings that settle bias a stop's mean along the move into it,
+    which a fit takes for an effect that depends on the direction of travel (80 stops read
+    4 times, 15 µm short at the first reading: structure, and diagnose added lead_scale to
+    the spiral it should have stopped at). A trend the same at every stop (an instrument
+    drifting while it reads) is not settling and leaves the readings as they are."""
+    measured = np.asarray(data.measured, float)
+    first = _trend(measured, stop)
+    trend, early, rounds = first, [], 0
+    while any("varying" in t.found for t in trend.values()):
+        has = np.isfinite(measured).any(axis=1)
+        count = np.bincount(stop[has], minlength=stop.max() + 1)
+        lead = np.full(stop.max() + 1, len(stop))
+        np.minimum.at(lead, stop[has], np.flatnonzero(has))
+        rows = lead[count >= 3]
+        if len(rows) == 0:
+            break
+        cells = [(int(r), int(c)) for r in rows for c in np.flatnonzero(np.isfinite(measured[r]))]
+        early += cells
+        measured = measured.copy()
+        measured[rows] = np.nan
+        rounds += 1
+        trend = _trend(measured, stop)
+    if not early:
+        return data, first, [], 0, first
+    from .outliers import without
+
+    return without(data, early), first, early, rounds, trend
 
 
 def stop_index(data) -> np.ndarray:
@@ -195,7 +394,8 @@ def within_stop_errors(data, stop, alpha=None) -> list:
 def merge_stops(data, screen: bool = True):
     """(data with each stop's readings merged, `Stops` or None where no stop has two rows
     with readings). Readings far from the other readings of their stop are set aside first
-    (`within_stop_errors`; not with `screen=False`). A column's merged reading is the mean
+    (`within_stop_errors`), then the first readings of stops that had not settled
+    (`settled`); neither with `screen=False`. A column's merged reading is the mean
     of the stop's readings of it (angles about the first, wrapped), in the stop's first row
     with readings; its stated σ, where there is one, that of the mean, √(Σσ²) / k; its
     temperature and payload the stop's means. The other rows' readings are set aside."""
@@ -208,6 +408,10 @@ def merge_stops(data, screen: bool = True):
     glitches = within_stop_errors(data, stop) if screen else []
     if glitches:
         data = without(data, glitches)
+    if screen:
+        data, trend, early, rounds, kept = settled(data, stop)
+    else:
+        trend, early, rounds, kept = _trend(np.asarray(data.measured, float), stop), [], 0, {}
     measured = np.asarray(data.measured, float)
     read, k, dev, total, ref = _about_stop(measured, stop)
     has = read.any(axis=1)
@@ -266,5 +470,9 @@ def merge_stops(data, screen: bool = True):
         within=within,
         set_aside=glitches,
         counts=counts,
+        trend=trend,
+        early=early,
+        early_rounds=rounds,
+        trend_after=kept,
     )
     return replace(data, **changes), info
