@@ -278,6 +278,10 @@ def test_readings_that_move_with_their_order_within_a_stop_are_named():
     assert all(s.early_rounds >= 1 for s in settled if "varying" in s.trend["positions"].found)
     assert all(not t.found for s in settled for t in s.trend_after.values())
     assert drifting.early_rounds == 0 and drifting.early == []
+    # read three times a stop: two readings are kept, which cannot be tested again
+    three = merge_stops(_moving_within_stops(rng, settle=0.030, k=3))[1]
+    assert three.early_rounds == 1 and three.trend_after == {}
+    assert "(fewer than three readings a stop are kept: not tested again)" in three.words()
 
 
 def test_stops_that_had_not_settled_are_fitted_on_their_settled_readings(table):

@@ -90,11 +90,18 @@ class Stops:
                 rows = len({r for r, _ in self.early})
                 text += (
                     f"; the first {self.early_rounds} reading(s) of each stop read three times "
-                    f"or more were left out ({rows} rows), as not settled: the readings kept "
-                    "show no trend that differs from stop to stop ("
-                    + ", ".join(after)
-                    + f", against {trend_bound(len(self.trend_after)):.2g})"
+                    f"or more were left out ({rows} rows), as not settled"
                 )
+                if any("varying" in t.found for t in self.trend_after.values()):
+                    text += ", and the readings kept still settle"  # no stop of 3 left
+                elif after:
+                    text += (
+                        ": the readings kept show no trend that differs from stop to stop ("
+                        + ", ".join(after)
+                        + f", against {trend_bound(len(after)):.2g})"
+                    )
+                else:
+                    text += " (fewer than three readings a stop are kept: not tested again)"
             elif "varying" in found:
                 text += (
                     "; take the readings once the table has settled, or leave out a stop's "
