@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .._rotation import wrap_reading_difference
+from .._rotation import ARCSEC_PER_RAD, wrap_reading_difference
 
 GROUPS = {"positions": slice(0, 3), "angles": slice(3, 6)}
 
@@ -65,7 +65,7 @@ class Stops:
         for g, (s, dof) in self.within.items():
             if s is None:
                 continue
-            unit, f = ("µm", 1e3) if g == "positions" else ("arcsec", np.rad2deg(1) * 3600)
+            unit, f = _shown(g)
             part = f"{g} {s * f:.3g} {unit} (dof {dof})"
             if sigma and g in sigma and np.isfinite(sigma[g]):
                 extra = sigma[g] ** 2 - s**2 / self.per_stop
@@ -140,6 +140,11 @@ class Stops:
         return out
 
 
+def _shown(group: str) -> tuple:
+    """(unit, factor from mm or rad) in which a column group's sizes are written."""
+    return ("µm", 1e3) if group == "positions" else ("arcsec", ARCSEC_PER_RAD)
+
+
 def _unit(group, value):
     if value is None:
         return None
@@ -174,22 +179,21 @@ class Trend:
     found: tuple
 
     def words(self, group: str) -> str:
-        unit, f = ("µm", 1e3) if group == "positions" else ("arcsec", np.rad2deg(1) * 3600)
+        unit, f = _shown(group)
         parts = []
-        if "varying" in self.found:
-            F, dof, p = self.varying
-            parts.append(
-                f"differently from stop to stop, {self.change * f:.3g} {unit} RMS from a "
-                f"stop's first reading to its last (F = {F:.3g} on {dof} and {self.dof_rest} "
-                f"dof, p = {p:.2g}): the table still settling after each move"
-            )
-        if "common" in self.found:
-            F, dof, p = self.common
-            parts.append(
-                f"the same way at every stop, {self.drift * f:.3g} {unit} from the first "
-                f"reading to the last (F = {F:.3g} on {dof} and {self.dof_rest} dof, "
-                f"p = {p:.2g}): the instrument drifting while it reads"
-            )
+        for name, size, how, span, cause in (
+            ("varying", self.change, "differently from stop to stop",
+             "RMS from a stop's first reading to its last",
+             "the table still settling after each move"),
+            ("common", self.drift, "the same way at every stop",
+             "from the first reading to the last", "the instrument drifting while it reads"),
+        ):  # fmt: skip
+            if name in self.found:
+                F, dof, p = getattr(self, name)
+                parts.append(
+                    f"{how}, {size * f:.3g} {unit} {span} (F = {F:.3g} on {dof} and "
+                    f"{self.dof_rest} dof, p = {p:.2g}): {cause}"
+                )
         return f"{group}: " + "; ".join(parts)
 
     def as_json(self, group: str) -> dict:
@@ -266,6 +270,14 @@ def trend_test(resid, read, stop, k) -> dict:
     return out
 
 
+def _first_rows(has, stop) -> np.ndarray:
+    """(S,) the first row of each stop with readings (`has` (N,) bool; N for a stop with
+    none)."""
+    first = np.full(stop.max() + 1, len(stop))
+    np.minimum.at(first, stop[has], np.flatnonzero(has))
+    return first
+
+
 def _trend(measured, stop):
     """`trend_test` of the readings `measured` (N, 6) in stops `stop`."""
     read, k, dev, total, _ = _about_stop(measured, stop)
@@ -289,13 +301,11 @@ def settled(data, stop):
     while any("varying" in t.found for t in trend.values()):
         has = np.isfinite(measured).any(axis=1)
         count = np.bincount(stop[has], minlength=stop.max() + 1)
-        lead = np.full(stop.max() + 1, len(stop))
-        np.minimum.at(lead, stop[has], np.flatnonzero(has))
-        rows = lead[count >= 3]
+        rows = _first_rows(has, stop)[count >= 3]
         if len(rows) == 0:
             break
-        cells = [(int(r), int(c)) for r in rows for c in np.flatnonzero(np.isfinite(measured[r]))]
-        early += cells
+        r, c = np.nonzero(np.isfinite(measured[rows]))
+        early += list(zip(rows[r].tolist(), c.tolist()))
         measured = measured.copy()
         measured[rows] = np.nan
         rounds += 1
@@ -424,10 +434,7 @@ def merge_stops(data, screen: bool = True):
     has = read.any(axis=1)
     count = np.bincount(stop[has], minlength=stop.max() + 1)
     n = len(stop)
-    # the first row with readings of each stop carries it
-    first = np.full(stop.max() + 1, n)
-    np.minimum.at(first, stop[has], np.flatnonzero(has))
-    lead = first[stop]  # (N,) the carrying row of each row's stop
+    lead = _first_rows(has, stop)[stop]  # (N,) the carrying row of each row's stop
     mean_dev = np.divide(total, k, out=np.zeros_like(total), where=k > 0)
     carry = np.unique(lead[has])
     merged = measured.copy()
