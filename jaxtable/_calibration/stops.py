@@ -53,6 +53,12 @@ class Stops:
     # 0 where not read or merged into another row)
     counts: np.ndarray | None = field(default=None, repr=False, compare=False)
 
+    def repeatability(self, sigma_mean: float, within: float) -> float:
+        """The table's repeatability at a stop, √(σ_mean² − σ_within² / k) (0 where the stop
+        means scatter less than their readings' noise allows), from the stop means' σ about
+        the model and the scatter within stops, k readings a stop."""
+        return float(np.sqrt(max(sigma_mean**2 - within**2 / self.per_stop, 0.0)))
+
     def words(self, sigma: dict | None = None) -> str:
         """In words; with `sigma` {group: σ of a stop's mean about the fitted model}, the
         table's repeatability at a stop: √(σ² − σ_within² / k), k readings a stop."""
@@ -68,8 +74,7 @@ class Stops:
             unit, f = _shown(g)
             part = f"{g} {s * f:.3g} {unit} (dof {dof})"
             if sigma and g in sigma and np.isfinite(sigma[g]):
-                extra = sigma[g] ** 2 - s**2 / self.per_stop
-                rep = np.sqrt(max(extra, 0.0)) * f
+                rep = self.repeatability(sigma[g], s) * f
                 part += (
                     f", the stop means about the model {sigma[g] * f:.3g}: the table's "
                     f"repeatability at a stop {rep:.3g} {unit}"
@@ -133,7 +138,7 @@ class Stops:
         }
         if sigma:
             out["repeatability"] = {
-                g: _unit(g, np.sqrt(max(sigma[g] ** 2 - s**2 / self.per_stop, 0.0)))
+                g: _unit(g, self.repeatability(sigma[g], s))
                 for g, (s, _) in self.within.items()
                 if s is not None and g in sigma
             }
