@@ -127,6 +127,7 @@ def test_a_stop_read_several_times_is_fitted_once_at_its_mean(table, read_four_t
     assert within["within_sigma"]["positions"] == pytest.approx(POS, rel=0.1)
     assert within["within_sigma"]["angles"] == pytest.approx(np.rad2deg(ANG), rel=0.1)
     assert 0.6 * REP_POS < within["repeatability"]["positions"] < 1.4 * REP_POS, within
+    assert within["weighted_by_readings"] == {} and cal.data.relative_sigma is None  # k alike
     assert "the table's repeatability at a stop" in cal.report()
     m = d.measured.copy()
     m[61, 0] += 0.3
@@ -311,3 +312,72 @@ def test_stops_that_had_not_settled_are_fitted_on_their_settled_readings(table):
     assert sorted({r for r, _ in cal.stops.early}) == list(range(0, n * k, k))
     assert structure_test(cal, st).p_value > 0.05 and cal.set_aside == []
     assert "were left out (80 rows), as not settled" in cal.report()
+
+
+REP_UNEQUAL = np.array([0.0015] * 3 + [np.deg2rad(0.3 / 3600)] * 3)  # the table's σ_r
+
+
+def _read_unequally(table, seed, rep=REP_UNEQUAL):
+    """60 stops of a table with random geometric errors, each read 1 to 10 times (a 6-D
+    tracker, 5 µm and 2″ a reading), with the table's own error at each stop (σ `rep`)
+    shared by its readings. Returns (data, readings a stop)."""
+    rng = np.random.default_rng(seed)
+    true = jt.perturb_table(table, 100 + seed)
+    k = rng.integers(1, 11, 60)
+    plan = np.repeat(jt.plan_random(60, 200 + seed), k, axis=0)
+    d = jt.simulate(table, true, plan, jt.tracker6(), seed=seed)
+    shared = np.repeat(rng.standard_normal((60, 6)) * rep, k, axis=0)
+    return dataclasses.replace(d, measured=d.measured + shared, sigma=None), k
+
+
+def test_stops_read_a_different_number_of_times_are_each_weighted_by_their_own_sigma(table):
+    """A stop's mean of k readings has variance σ_r² + σ_w² / k. Stops read 1 to 10 times
+    (the table's repeatability σ_r 1.5 µm and 0.3″, the tracker 5 µm and 2″): the fit is
+    the generalised least squares of the stop means with those σ (a file of the means by
+    hand with them as stated σ gives the same parameters, to 1 % of their σ: the noise
+    scales converge to 1 %), and the repeatability it reports is the table's (mean over 6
+    files 1.2–1.8 µm and 0.1–0.5″; weighted alike, the mean of 1/k sat in the formula's
+    1 / k̃ and gave 2.15 µm and 0.70″). `diagnose` weighs them the same way."""
+    reps = []
+    for seed in range(6):
+        d, k = _read_unequally(table, seed)
+        st, cal = fit_screened(table, d, jt.GEOMETRY)
+        doc = cal.stops.as_json(cal.group_sigma())
+        assert {g: (w["fewest"], w["most"]) for g, w in doc["weighted_by_readings"].items()} == {
+            "positions": (k.min(), k.max()),
+            "angles": (k.min(), k.max()),
+        }
+        reps.append([doc["repeatability"]["positions"], doc["repeatability"]["angles"]])
+        if seed:
+            continue
+        assert "each stop's mean weighted by its own σ" in cal.report()
+        first = np.r_[0, np.cumsum(k)[:-1]]
+        means = np.add.reduceat(d.measured, first, axis=0) / k[:, None]
+        within = [cal.stops.within[g][0] for g in ("positions", "angles")]
+        rep = [cal.stops.weighted[g][0] for g in ("positions", "angles")]
+        sw, sr = np.repeat(within, 3), np.repeat(rep, 3)
+        gls = jt.Measurements(cmd_pose=d.cmd_pose[first], measured=means,
+                              cmd_lengths=d.cmd_lengths[first],
+                              sigma=np.sqrt(sr**2 + sw**2 / k[:, None]) * np.ones((60, 6)))  # fmt: skip
+        ref = jt.calibrate(table, gls)
+        ok = np.isfinite(ref.std) & (ref.std > 0)
+        np.testing.assert_array_less(np.abs(cal.value - ref.value)[ok] / ref.std[ok], 0.01)
+        diag = jt.diagnose(table, d, base=("spiral",), library=[], discover=False,
+                           flexible=False, log=lambda _: None)  # fmt: skip
+        weighted = diag.as_json()["stops_read_more_than_once"]["weighted_by_readings"]
+        assert sorted(weighted) == ["angles", "positions"]
+    pos, ang = np.mean(reps, axis=0)
+    assert 1.2e-3 < pos < 1.8e-3 and 0.1 / 3600 < ang < 0.5 / 3600, (pos, ang * 3600)
+
+
+@pytest.mark.slow
+def test_stops_read_a_different_number_of_times_lose_no_reading_100_seeds(table):
+    """Noise-only files of stops read 1 to 10 times (the table's repeatability 0.5 µm, the
+    tracker's 5 µm: a stop read once is 2.3 times as noisy as one read 6 times): at most
+    the binomial 99th percentile at the screen's 1 % lose a reading. Weighted alike, a
+    stop read once took the bound of a typical stop's mean: 3 files of 20 lost one."""
+    lost = 0
+    for seed in range(100, 200):
+        d, _ = _read_unequally(table, seed, REP_UNEQUAL / 3)
+        lost += bool(jt.calibrate(table, d).set_aside)
+    assert lost <= binom.ppf(0.99, 100, 0.01), lost

@@ -65,7 +65,7 @@ from .outliers import ALPHA, TRIAL_ROUNDS, GrossError, prescreen, repeat_words, 
 from .outliers import screen as screen_gross_errors
 from .prior import check as prior_check
 from .prior import weights as prior_weights
-from .stops import merge_stops
+from .stops import merge_stops, weigh_stops
 
 JOINTS = params.JOINTS
 COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
@@ -1208,7 +1208,11 @@ def make_problem(
     sigma = sigma0
     if sigma is None:
         sigma = noise_model(
-            data.measured, data.sigma, session=data.session_index, sessions=data.sessions
+            data.measured,
+            data.sigma,
+            session=data.session_index,
+            sessions=data.sessions,
+            relative=data.relative_sigma,
         ).sigma0
     return Problem(
         nominal=nominal,
@@ -1317,6 +1321,7 @@ def setup(
         data.session_index,
         data.sessions,
         data.aside,
+        data.relative_sigma,
     )
     problem = make_problem(
         nominal, data, eff, bases, compensated, used_columns(eff, free), noise.sigma0
@@ -1728,7 +1733,7 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
 
     if outliers == "keep":
         data, stops = merge_stops(data, screen=False)
-        st, cal = run(data)
+        data, stops, st, cal = weighed_fit(data, stops, *run(data), run)
         cal.stops, cal.data = stops, data
         return st, cal
     # rows a logger wrote twice and readings no table could have produced (a tracker that
@@ -1737,7 +1742,7 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
     data, repeated, pre = prescreen(data)
     data, stops = merge_stops(data)
     pre += [] if stops is None else stops.set_aside
-    st, cal = run(data)
+    data, stops, st, cal = weighed_fit(data, stops, *run(data), run)
     st, cal = set_aside_gross_errors(data, st, cal, run, setup_kw.get("compensated"))
     cal.data = without(data, cal.set_aside)
     if pre:
@@ -1747,6 +1752,20 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
 
 
 OUTLIERS = ("set_aside", "keep")
+
+
+def weighed_fit(data: Measurements, stops, st: "Setup", cal: "Calibration", run):
+    """(data, stops, set-up, fit): where the stops of `data` were read a different number
+    of times, each stop's mean weighted by its readings (`stops.weigh_stops`, with the
+    table's repeatability from the first fit `cal`, which weighted them alike) and the fit
+    made again with `run(data) -> (setup, fit)`; the arguments as they are otherwise."""
+    if stops is None or st.noise is None or cal.noise is None:
+        return data, stops, st, cal
+    out = weigh_stops(data, stops, st.noise.groups, cal.noise.sigma, cal.noise.stated)
+    if out is None:
+        return data, stops, st, cal
+    data, stops = out
+    return (data, stops, *run(data))
 
 
 def set_aside_gross_errors(

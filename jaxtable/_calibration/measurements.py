@@ -54,7 +54,10 @@ class Measurements:
       `t` runs over it (`_context.run_time`), else over the row order;
     - `extra`: unknown columns, kept as strings and written back;
     - `aside` (N, 6) bool or None: readings set aside as gross errors (`outliers.without`):
-      NaN in `measured`, but read, so that the row keeps its instrument's set of columns.
+      NaN in `measured`, but read, so that the row keeps its instrument's set of columns;
+    - `relative_sigma` (N, 6) or None: the σ of each unstated reading relative to the
+      others' (`stops.weigh_stops`: a stop's mean of k readings, √(σ_r² + σ_w²/k), where
+      stops were read a different number of times); None: all alike.
     """
 
     cmd_pose: np.ndarray
@@ -67,6 +70,7 @@ class Measurements:
     extra: dict = field(default_factory=dict)
     aside: np.ndarray | None = None
     time: np.ndarray | None = None
+    relative_sigma: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.cmd_pose)
@@ -135,6 +139,7 @@ class Measurements:
             {k: take(v) for k, v in self.extra.items()},
             take(self.aside),
             take(self.time),
+            take(self.relative_sigma),
         )
 
 

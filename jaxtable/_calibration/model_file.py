@@ -119,7 +119,7 @@ def instrument_frames(cal: Calibration, sessions: list[str]) -> InstrumentFrames
     noise, noise_std, lev = column_noise(cal)
     k, within = 1.0, np.full(6, np.nan)
     if cal.stops is not None and cal.stops.stops > 0:
-        k = float(cal.stops.per_stop)
+        k = float(cal.stops.reference)
         for g, cols in (("positions", slice(0, 3)), ("angles", slice(3, 6))):
             s = cal.stops.within.get(g, (None, 0))[0]
             if s is not None:

@@ -135,9 +135,12 @@ def noise_model(
     session=None,
     sessions=None,
     aside: np.ndarray | None = None,
+    relative: np.ndarray | None = None,
 ):
     """The NoiseModel of a data set: `measured` (N, 6) with NaN for lost cells, the file's
     σ columns `sigma` (N, 6) or None, `override` {column: σ} (mm / rad) from the user;
+    `relative` (N, 6) or None: the σ of each reading without a stated σ relative to its
+    group's others (`Measurements.relative_sigma`; None: alike);
     `ratio`: None (each fit tests one σ per group), or {group name: (6 S,) relative σ of
     its parts} fixed for every fit (a group not named: one σ); `session` (N,) each row's
     session index, `sessions` their labels (default: one session); `aside` (N, 6) bool or
@@ -146,7 +149,8 @@ def noise_model(
     mask = np.isfinite(measured)
     n = len(measured)
     stated_cell = np.zeros((n, 6), bool)
-    sigma0 = np.where(mask, DEFAULT_SIGMA, np.nan)
+    shape = 1.0 if relative is None else np.where(mask, np.asarray(relative, float), 1.0)
+    sigma0 = np.where(mask, DEFAULT_SIGMA * shape, np.nan)
     filled = np.zeros((n, 6), bool)
     if sigma is not None:
         ok = mask & np.isfinite(sigma) & (np.asarray(sigma) > 0)

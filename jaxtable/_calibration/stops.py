@@ -31,7 +31,7 @@ GROUPS = {"positions": slice(0, 3), "angles": slice(3, 6)}
 @dataclass(frozen=True)
 class Stops:
     """Stops read more than once: `stops` of them, over `rows` rows; `per_stop` the median
-    rows a stop; `within` {group: (σ, dof)}: the pooled scatter of a stop's readings about
+    rows a stop of those; `within` {group: (σ, dof)}: the pooled scatter of a stop's readings about
     their mean (mm / rad), None for a group without two readings of a stop; `set_aside`:
     readings far from the other readings of their stop (`within_stop_errors`), not in the
     mean."""
@@ -52,12 +52,24 @@ class Stops:
     # (N, 6) the readings of each column merged into each row (1 where a row was read once,
     # 0 where not read or merged into another row)
     counts: np.ndarray | None = field(default=None, repr=False, compare=False)
+    # where the stops were read a different number of times and weighted by it
+    # (`weigh_stops`): {group: (σ_r, fewest, most readings a stop)} (mm / rad), the table's
+    # repeatability the weights were made with
+    weighted: dict = field(default_factory=dict)
+    # the median rows a stop over every stop with readings (those read once too): the stop
+    # whose mean the fit's σ is of (`weigh_stops`, `repeatability`); `per_stop` where None
+    typical: float | None = None
+
+    @property
+    def reference(self) -> float:
+        """The readings of the stop whose mean the fit's σ is of: the median a stop."""
+        return self.per_stop if self.typical is None else self.typical
 
     def repeatability(self, sigma_mean: float, within: float) -> float:
         """The table's repeatability at a stop, √(σ_mean² − σ_within² / k) (0 where the stop
         means scatter less than their readings' noise allows), from the stop means' σ about
-        the model and the scatter within stops, k readings a stop."""
-        return float(np.sqrt(max(sigma_mean**2 - within**2 / self.per_stop, 0.0)))
+        the model and the scatter within stops, k = `reference` readings a stop."""
+        return float(np.sqrt(max(sigma_mean**2 - within**2 / self.reference, 0.0)))
 
     def words(self, sigma: dict | None = None) -> str:
         """In words; with `sigma` {group: σ of a stop's mean about the fitted model}, the
@@ -117,6 +129,8 @@ class Stops:
                     "; an instrument that drifts while it reads drifts between the stops too "
                     "(the drift in time that diagnose tests)"
                 )
+        if self.weighted:
+            text += ". The stops were read a different number of times: " + self.weight_words()
         if sigma:
             text += (
                 " (a stated σ below is that of a stop's mean, σ / √k: the table's "
@@ -124,6 +138,19 @@ class Stops:
                 "a pose approached again, put the repeatability in the scatter within)"
             )
         return text
+
+    def weight_words(self) -> str:
+        """How the stops read a different number of times were weighted (`weigh_stops`)."""
+        parts = []
+        for g, (rep, lo, hi) in self.weighted.items():
+            unit, f = _shown(g)
+            parts.append(f"{g} {lo:g} to {hi:g} readings, σ_r {rep * f:.3g} {unit}")
+        return (
+            "each stop's mean weighted by its own σ, √(σ_r² + σ_within² / k) for k readings ("
+            + "; ".join(parts)
+            + "), the table's repeatability σ_r from a first fit that weighted them alike; "
+            f"the fit's σ is that of a stop read {self.reference:g} times"
+        )
 
     def as_json(self, sigma: dict | None = None) -> dict:
         """{"stops", "rows", "per_stop", "within_sigma": {group: mm or deg}, and with
@@ -135,6 +162,10 @@ class Stops:
             "within_sigma": {g: _unit(g, s) for g, (s, _) in self.within.items()},
             "trend_within_stops": {g: t.as_json(g) for g, t in self.trend.items()},
             "first_readings_left_out": self.early_rounds,
+            "weighted_by_readings": {
+                g: {"repeatability": _unit(g, rep), "fewest": lo, "most": hi}
+                for g, (rep, lo, hi) in self.weighted.items()
+            },
         }
         if sigma:
             out["repeatability"] = {
@@ -413,6 +444,54 @@ def within_stop_errors(data, stop, alpha=None) -> list:
     return sorted(found, key=lambda g: -abs(g.z))
 
 
+WEIGHT_TOL = 0.02
+"""`weigh_stops` leaves the weights alike where no stop's σ differs from the typical stop's
+by more than this fraction (2 %: a weight within 4 % of the others changes a fit by less
+than its rounding matters)."""
+
+
+def weigh_stops(data, stops: "Stops", groups, sigma, stated):
+    """(data with `relative_sigma`, `Stops` with `weighted`) where the stops were read a
+    different number of times; None where every stop's weight is within `WEIGHT_TOL` of the
+    others' (a file that read each stop equally often).
+
+    A stop's mean of k readings has variance σ_r² + σ_w² / k: the table's error at the
+    stop (its repeatability σ_r, shared by the readings) and the instrument's noise σ_w
+    over k. σ_w is the scatter within stops (`Stops.within`, no model needed); σ_r comes
+    from a first fit that weighted the stops alike, whose group σ² is then σ_r² plus
+    σ_w² times the mean of 1/k over the group's readings (clipped at 0: stops that scatter
+    no more than their readings' noise). A stop read once then weighs as much as its one
+    reading deserves: fitted alike, it took the screen's bound for a mean of several and
+    was set aside as a gross error (60 stops read 1 to 10 times, noise-only data: 3 files
+    of 20 lost readings, against the screen's 1 %). The weights are relative to a stop
+    read `Stops.reference` times, so the fit's σ is that stop's.
+
+    `groups` (N, 6) int: each reading's noise group (`noise.NoiseModel.groups`, −1 for
+    none), `sigma` (G,) the first fit's σ of each group (mm / rad), `stated` (G,) bool:
+    groups whose σ the file states (their σ is the stated one, left alone)."""
+    counts = np.asarray(stops.counts, float)
+    groups = np.asarray(groups)
+    shape = np.ones(counts.shape)
+    weighted = {}
+    for g in np.unique(groups[groups >= 0]):  # noise groups (a few), not readings
+        cells = (groups == g) & (counts >= 1)
+        if stated[g] or not cells.any():
+            continue
+        name = "positions" if np.flatnonzero(cells.any(axis=0))[0] < 3 else "angles"
+        within = stops.within.get(name, (None, 0))[0]
+        if within is None:
+            continue
+        k = counts[cells]
+        rep2 = max(float(sigma[g]) ** 2 - within**2 * float(np.mean(1.0 / k)), 0.0)
+        shape[cells] = np.sqrt((rep2 + within**2 / k) / (rep2 + within**2 / stops.reference))
+        lo, hi = float(k.min()), float(k.max())
+        if name not in weighted or weighted[name][2] - weighted[name][1] < hi - lo:
+            weighted[name] = (float(np.sqrt(rep2)), lo, hi)
+    if not np.any(np.abs(shape - 1.0) > WEIGHT_TOL):
+        return None
+    return replace(data, relative_sigma=shape), replace(stops, weighted=weighted)
+
+
 def merge_stops(data, screen: bool = True):
     """(data with each stop's readings merged, `Stops` or None where no stop has two rows
     with readings). Readings far from the other readings of their stop are set aside first
@@ -486,6 +565,7 @@ def merge_stops(data, screen: bool = True):
         stops=int(multi.sum()),
         rows=int(count[multi].sum()),
         per_stop=float(np.median(count[multi])),
+        typical=float(np.median(count[count > 0])),
         within=within,
         set_aside=glitches,
         counts=counts,

@@ -75,7 +75,7 @@ from .._calibration.outliers import (
     without,
 )
 from .._calibration.outliers import screen as screen_gross_errors
-from .._calibration.stops import merge_stops
+from .._calibration.stops import merge_stops, weigh_stops
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._errors import POSE_COLUMNS
 from .._jit import jit
@@ -777,8 +777,26 @@ def diagnose(
                     f"{len(stops.set_aside)} reading(s) far from the other readings of their "
                     "stop set aside: " + "; ".join(g.words() for g in stops.set_aside[:5])
                 )
-        for _ in range(4 + MAX_SPLITS):
+        weigh = stops is not None
+        for _ in range(5 + MAX_SPLITS):
             diag = diagnose(nominal, data, **{**kw, "outliers": "keep", "_column_ratio": ratio})
+            if weigh:  # once, from the first pass's final model, before any screen
+                weigh = False
+                out = weigh_stops(
+                    data,
+                    stops,
+                    diag.setup.noise.groups,
+                    diag.final.noise.sigma,
+                    diag.final.noise.stated,
+                )
+                if out is not None:
+                    data, stops = out
+                    log(
+                        "the stops were read a different number of times: "
+                        + stops.weight_words()
+                        + " — diagnosing again with each stop weighted by its own σ"
+                    )
+                    continue
             # data snooping needs a model that fits: where structure is left unexplained,
             # only readings whose setting aside leaves none (a burst of gross errors)
             found = [] if outliers == "keep" else _final_gross_errors(diag, diag.unexplained)
