@@ -485,7 +485,7 @@ def weigh_stops(data, stops: "Stops", groups, sigma, stated):
         rep2 = max(float(sigma[g]) ** 2 - within**2 * float(np.mean(1.0 / k)), 0.0)
         shape[cells] = np.sqrt((rep2 + within**2 / k) / (rep2 + within**2 / stops.reference))
         lo, hi = float(k.min()), float(k.max())
-        if name not in weighted or weighted[name][2] - weighted[name][1] < hi - lo:
+        if hi > lo and (name not in weighted or weighted[name][2] - weighted[name][1] < hi - lo):
             weighted[name] = (float(np.sqrt(rep2)), lo, hi)
     if not np.any(np.abs(shape - 1.0) > WEIGHT_TOL):
         return None
