@@ -343,6 +343,8 @@ def _diagnose(args) -> int:
         print(
             f"held-out check not defined: {UNDEFINED_WORDS}; no effect can be accepted without it"
         )
+    if diag.instrument_scale is not None:
+        print(diag.instrument_scale.words())
     for f in diag.discovered:
         print(f"discovered: {f.words}")
     if diag.absorbed:

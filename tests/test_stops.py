@@ -356,9 +356,9 @@ def test_stops_read_a_different_number_of_times_are_each_weighted_by_their_own_s
         within = [cal.stops.within[g][0] for g in ("positions", "angles")]
         rep = [cal.stops.weighted[g][0] for g in ("positions", "angles")]
         sw, sr = np.repeat(within, 3), np.repeat(rep, 3)
+        sigma = np.sqrt(sr**2 + sw**2 / k[:, None]) * np.ones((60, 6))
         gls = jt.Measurements(cmd_pose=d.cmd_pose[first], measured=means,
-                              cmd_lengths=d.cmd_lengths[first],
-                              sigma=np.sqrt(sr**2 + sw**2 / k[:, None]) * np.ones((60, 6)))  # fmt: skip
+                              cmd_lengths=d.cmd_lengths[first], sigma=sigma)  # fmt: skip
         ref = jt.calibrate(table, gls)
         ok = np.isfinite(ref.std) & (ref.std > 0)
         np.testing.assert_array_less(np.abs(cal.value - ref.value)[ok] / ref.std[ok], 0.01)

@@ -39,6 +39,7 @@ from .._kinematics import in_stroke
 from .._rotation import best_rotation, euler_from_matrix, wrap_reading_difference
 from .._table import Table, check_table, replace
 from .._threads import one_blas_thread
+from .aliases import instrument_scale
 from .instruments import observe
 from .measurements import (
     Measurements,
@@ -946,6 +947,10 @@ class Calibration:
         ]
         if self.repeated:
             lines.append(repeat_words(self.repeated))
+        if self.data is not None:
+            alias = instrument_scale(self, np.isfinite(np.asarray(self.data.measured, float)))
+            if alias is not None:
+                lines.append(alias.words())
         if self.stops is not None:
             lines.append(self.stops.words(self.group_sigma()))
         if self.noise is not None:

@@ -54,6 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _params as params
+from .._calibration.aliases import ScaleAlias, instrument_scale
 from .._calibration.fit import (
     OUTLIERS,
     Calibration,
@@ -424,6 +425,9 @@ class Diagnosis:
     stops: object | None = None
     # sessions split at a step in time (`changepoint.SessionSplit`, in the order found)
     split_sessions: list = field(default_factory=list)
+    # where the final model has `lead_scale` on every leg: its common part, which pose data
+    # cannot tell from the instrument's length scale (`aliases.ScaleAlias`)
+    instrument_scale: ScaleAlias | None = None
 
     @property
     def rms_sigma_before(self) -> float:
@@ -538,6 +542,9 @@ class Diagnosis:
                 "rows": len(self.residual_model.rows),
                 "rows_total": self.residual_model.rows_total,
             },
+            "instrument_scale": None
+            if self.instrument_scale is None
+            else self.instrument_scale.as_json(),
             "selected_params": {
                 name: {f: {"value": v.tolist(), "std": s.tolist()} for f, (v, s) in p.items()}
                 for name, p in ((n, self.effect_params(n)) for n in self.selected)
@@ -1271,6 +1278,7 @@ def diagnose(
         data=data,
         nominal=nominal,
         residual_model=residual_model,
+        instrument_scale=instrument_scale(final, mask, alpha) if "lead_scale" in model else None,
     )
 
 

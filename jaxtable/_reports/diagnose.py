@@ -354,6 +354,8 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
                     f"σ {s.min():.2g}–{s.max():.2g} {vocab.UNITS.get(f, '')}, and a leg can "
                     f"differ from the common value by a few of these σ unseen)"
                 )
+            if form == "lead_scale" and diag.instrument_scale is not None:
+                lines.append(f"  ({diag.instrument_scale.words()})")
             if name not in map(vocab.form_effect, diag.selected_forms[k + 1 :]):
                 lines.append(f"  (prior source: {EFFECTS[name].source})")
         lines.append("")
