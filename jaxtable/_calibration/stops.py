@@ -479,7 +479,7 @@ def weigh_stops(data, stops: "Stops", groups, sigma, stated):
             continue
         name = "positions" if np.flatnonzero(cells.any(axis=0))[0] < 3 else "angles"
         within = stops.within.get(name, (None, 0))[0]
-        if within is None:
+        if within is None or not np.isfinite(sigma[g]) or within <= 0:
             continue
         k = counts[cells]
         rep2 = max(float(sigma[g]) ** 2 - within**2 * float(np.mean(1.0 / k)), 0.0)
