@@ -1759,14 +1759,20 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
 OUTLIERS = ("set_aside", "keep")
 
 
+def weighed_by(data: Measurements, stops, st: "Setup", cal: "Calibration"):
+    """`stops.weigh_stops` of `data` with the noise groups of set-up `st` and the σ of its
+    fit `cal` (which weighted the stops alike): (data, stops) with each stop's mean
+    weighted by its readings, or None where the weights stay alike."""
+    if stops is None or st.noise is None or cal.noise is None:
+        return None
+    return weigh_stops(data, stops, st.noise.groups, cal.noise.sigma, cal.noise.stated)
+
+
 def weighed_fit(data: Measurements, stops, st: "Setup", cal: "Calibration", run):
     """(data, stops, set-up, fit): where the stops of `data` were read a different number
-    of times, each stop's mean weighted by its readings (`stops.weigh_stops`, with the
-    table's repeatability from the first fit `cal`, which weighted them alike) and the fit
-    made again with `run(data) -> (setup, fit)`; the arguments as they are otherwise."""
-    if stops is None or st.noise is None or cal.noise is None:
-        return data, stops, st, cal
-    out = weigh_stops(data, stops, st.noise.groups, cal.noise.sigma, cal.noise.stated)
+    of times, each stop's mean weighted by its readings (`weighed_by`) and the fit made
+    again with `run(data) -> (setup, fit)`; the arguments as they are otherwise."""
+    out = weighed_by(data, stops, st, cal)
     if out is None:
         return data, stops, st, cal
     data, stops = out

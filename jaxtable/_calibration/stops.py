@@ -31,10 +31,10 @@ GROUPS = {"positions": slice(0, 3), "angles": slice(3, 6)}
 @dataclass(frozen=True)
 class Stops:
     """Stops read more than once: `stops` of them, over `rows` rows; `per_stop` the median
-    rows a stop of those; `within` {group: (σ, dof)}: the pooled scatter of a stop's readings about
-    their mean (mm / rad), None for a group without two readings of a stop; `set_aside`:
-    readings far from the other readings of their stop (`within_stop_errors`), not in the
-    mean."""
+    rows a stop of those; `within` {group: (σ, dof)}: the pooled scatter of a stop's
+    readings about their mean (mm / rad), None for a group without two readings of a stop;
+    `set_aside`: readings far from the other readings of their stop (`within_stop_errors`),
+    not in the mean."""
 
     stops: int
     rows: int

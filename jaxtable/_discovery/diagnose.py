@@ -62,6 +62,7 @@ from .._calibration.fit import (
     fit,
     setup,
     warn_not_physical,
+    weighed_by,
     weighted_residual,
 )
 from .._calibration.heldout import UNDEFINED_WORDS, heldout_rms, heldout_text, make_folds
@@ -76,7 +77,7 @@ from .._calibration.outliers import (
     without,
 )
 from .._calibration.outliers import screen as screen_gross_errors
-from .._calibration.stops import merge_stops, weigh_stops
+from .._calibration.stops import merge_stops
 from .._effects import EFFECTS, MODEL_EFFECTS, leg_forces
 from .._errors import POSE_COLUMNS
 from .._jit import jit
@@ -789,13 +790,7 @@ def diagnose(
             diag = diagnose(nominal, data, **{**kw, "outliers": "keep", "_column_ratio": ratio})
             if weigh:  # once, from the first pass's final model, before any screen
                 weigh = False
-                out = weigh_stops(
-                    data,
-                    stops,
-                    diag.setup.noise.groups,
-                    diag.final.noise.sigma,
-                    diag.final.noise.stated,
-                )
+                out = weighed_by(data, stops, diag.setup, diag.final)
                 if out is not None:
                     data, stops = out
                     log(
