@@ -302,3 +302,68 @@ def test_a_drift_is_not_taken_for_a_step():
     assert sum("diagnosing again with rows" in x for x in lines) == 2, lines
     assert any("leave structure unexplained: not steps" in x for x in lines)
     assert diag.split_sessions == [] and diag.unexplained and diag.data.sessions == ["1"]
+
+
+class _LegDrift(jt.AbstractEffect):
+    """Leg lengths drifting linearly over the run (the file's clock, 0..1): c_i t, mm."""
+
+    c: np.ndarray
+
+    def __call__(self, table, pose, s, ctx=None):
+        return self.c * ctx.time
+
+
+def _drifting(instrument: bool, n: int = 150, seed: int = 5):
+    """`n` stops of a table with geometric errors read by a 6-D tracker 1 m away: the
+    tracker turning 20″ about its vertical over the run, or the legs drifting by 30, −20,
+    10, 25, −15, 5 µm."""
+    table = jt.reference_table()
+    true = jt.perturb_table(table, seed)
+    c = np.array([30.0, -20.0, 10.0, 25.0, -15.0, 5.0]) * 1e-3
+    effects = {} if instrument else {"drift": _LegDrift(c)}
+    d = jt.simulate(table, true, jt.plan_random(n, seed + 1), jt.tracker6(), seed=seed + 2,
+                    frame=(300.0, -200.0, 800.0, 0.1, 0.2, 0.3), effects=effects)  # fmt: skip
+    m = d.measured.copy()
+    if instrument:  # the frame turns about the tracker's z: positions rotate, the yaw adds
+        th = np.deg2rad(20.0 / 3600) * np.linspace(0, 1, n)
+        x, y = d.measured[:, 0], d.measured[:, 1]
+        m[:, 0], m[:, 1] = np.cos(th) * x - np.sin(th) * y, np.sin(th) * x + np.cos(th) * y
+        m[:, 5] += th
+    return table, dataclasses.replace(d, measured=m, sigma=None)
+
+
+def test_a_drift_in_time_is_told_the_instrument_s_or_the_legs():
+    """A drift of the instrument's frame and a drift of the legs' zeros are different
+    functions of the pose. The drift's Δχ² of each kind (linearised at the fit) equals the
+    χ² that a least-squares refit with the drift's columns added to the fit's Jacobian
+    takes out (numpy's lstsq, to 1e-4: the fit converged to ~1e-5 of it); where
+    `diagnose` discovers the drift term `t`, the tracker turning over the run is named the
+    instrument's ("would move the table off"), the legs drifting the legs'."""
+    from jaxtable._discovery.changepoint import _kinds
+    from jaxtable._discovery.structure import whitened
+
+    table, d = _drifting(True)
+    st, cal = fit_screened(table, d, GEOMETRY, effects={}, outliers="keep")
+    w = whitened(cal, st)
+    J = np.asarray(cal.jacobian) * w.factor.reshape(-1, 1)
+    keep = w.mask.reshape(-1)
+    e = w.e.reshape(-1)[keep]
+
+    def left(A):
+        return float(np.sum((e - A @ np.linalg.lstsq(A, e, rcond=None)[0]) ** 2))
+
+    kinds = _kinds(cal, st, w, 2)
+    assert sorted(kd.kind for kd in kinds) == ["instrument frame", "leg zeros"]
+    for kd in kinds:
+        ramp = np.zeros((len(w.mask), 6, kd.ramp.shape[-1]))
+        ramp[kd.rows] = kd.ramp
+        both = np.hstack([J, ramp.reshape(len(keep), -1)])[keep]
+        assert kd.drift_chi2(w.e) == pytest.approx(left(J[keep]) - left(both), rel=1e-4)
+    for instrument, kind in ((True, "instrument frame"), (False, "leg zeros")):
+        table, d = _drifting(instrument)
+        diag = jt.diagnose(table, d, library=[], flexible=False, log=lambda _: None)
+        drift = [f for f in diag.discovered if f.candidate.family == "t"]
+        assert drift and drift[0].drift_source.preferred == kind, [f.words for f in drift]
+        doc = diag.as_json()["discovered"][diag.discovered.index(drift[0])]["drift_source"]
+        assert doc["preferred"] == kind
+        assert ("would move the table off" in drift[0].words) == instrument

@@ -159,6 +159,7 @@ class _Kind:
     rank: np.ndarray
     ramp: np.ndarray  # (n, 6, q) the columns A times the centred time of each row
     ramp_inv: np.ndarray  # (q, q) pseudo-inverse of the ramp's G
+    ramp_rank: int = 0  # its rank: the drift's degrees of freedom
 
     def drift_chi2(self, e: np.ndarray) -> float:
         """Δχ² a linear drift in time of the kind's parameters over the session takes out
@@ -197,9 +198,81 @@ def _kinds(cal: Calibration, st: Setup, w: Whitened, min_rows: int) -> list:
             R = A * t[:, None, None]
             MR = np.einsum("ncr,ncq->rq", U[rows], R)
             GR = np.einsum("ncq,ncp->qp", R, R) - MR.T @ MR
-            ramp_inv = _pinv_stack(GR[None])[0][0]
-            out.append(_Kind(int(s), kind, cols, rows, k, A, Ginv, rank, R, ramp_inv))
+            ramp_inv, ramp_rank = (x[0] for x in _pinv_stack(GR[None]))
+            out.append(
+                _Kind(int(s), kind, cols, rows, k, A, Ginv, rank, R, ramp_inv, int(ramp_rank))
+            )
     return out
+
+
+@dataclass(frozen=True)
+class DriftSource:
+    """Whose drift a drift in time is: what a linear drift over each session of the
+    instrument's frame (its fitted degrees of freedom) and of the six legs' zeros take out
+    of a fit's whitened residuals (`chi2` {kind: Δχ²}, `dof` {kind: q}, linearised at the
+    fit, summed over sessions), each scored as the dictionary scores a term, Δχ² − q ln n
+    (`n_obs` readings). The two are different functions of the pose (a frame drift moves
+    every reading alike; a drift of the legs' zeros moves the platform by J⁻¹ c, which
+    changes over the workspace), so the data can prefer one: `preferred` is the kind
+    whose score is higher by more than `margin` (the dictionary's ambiguity), else
+    "either"."""
+
+    chi2: dict
+    dof: dict
+    n_obs: int
+    margin: float
+
+    def score(self, kind: str) -> float:
+        return self.chi2[kind] - self.dof[kind] * np.log(self.n_obs)
+
+    @property
+    def preferred(self) -> str:
+        if len(self.chi2) < 2:
+            return "either"
+        frame, legs = self.score("instrument frame"), self.score("leg zeros")
+        if abs(frame - legs) <= self.margin:
+            return "either"
+        return "instrument frame" if frame > legs else "leg zeros"
+
+    def words(self) -> str:
+        if len(self.chi2) < 2:
+            return ""
+        numbers = (
+            f"a drift of the instrument's frame over each session takes out Δχ² = "
+            f"{self.chi2['instrument frame']:.1f} on {self.dof['instrument frame']}, one of "
+            f"the six legs' zeros {self.chi2['leg zeros']:.1f} on {self.dof['leg zeros']}"
+        )
+        if self.preferred == "instrument frame":
+            return (
+                f"{numbers}: the instrument drifting (a tracker or its stand warming up, a "
+                "target creeping) reads like this more than the legs do; compensating the "
+                "table's commands for it would move the table off"
+            )
+        if self.preferred == "either":
+            return (
+                f"{numbers}: the legs or the instrument, these data cannot tell; a fixed "
+                "reference target read now and then would"
+            )
+        return f"{numbers}: the legs', not the instrument's"
+
+    def as_json(self) -> dict:
+        return {
+            "delta_chi2": dict(self.chi2),
+            "dof": dict(self.dof),
+            "preferred": self.preferred,
+            "words": self.words(),
+        }
+
+
+def drift_source(cal: Calibration, st: Setup, margin: float = 6.0) -> DriftSource:
+    """`DriftSource` of fit `cal` (set-up `st`): the instrument frame's drift against the
+    legs' zeros', over every session with 4 measured rows or more."""
+    w = whitened(cal, st)
+    chi2, dof = {}, {}
+    for kd in _kinds(cal, st, w, 2):
+        chi2[kd.kind] = chi2.get(kd.kind, 0.0) + kd.drift_chi2(w.e)
+        dof[kd.kind] = dof.get(kd.kind, 0) + kd.ramp_rank
+    return DriftSource(chi2, dof, int(np.asarray(w.mask).sum()), margin)
 
 
 def _log_sf(d: np.ndarray, rank: np.ndarray) -> np.ndarray:

@@ -83,7 +83,14 @@ from .._errors import POSE_COLUMNS
 from .._jit import jit
 from .._table import Table
 from .._threads import one_blas_thread
-from .changepoint import SessionSplit, split_label, split_session, step_scan
+from .changepoint import (
+    DriftSource,
+    SessionSplit,
+    drift_source,
+    split_label,
+    split_session,
+    step_scan,
+)
 from .dictionary import TERMS, TermCandidate, candidates, compensation_gain, screen, words
 from .gp import ResidualGP, min_rows, residual_gp
 from .structure import (
@@ -318,6 +325,9 @@ class Finding:
     # RMS commanded-pose error a controller avoids by compensating with the term
     commanded_pose_gain: dict = field(default_factory=dict)
     plan: str | None = None  # pose-plan file that tells it from its rivals (reports)
+    # a drift in time (`t`): the instrument's frame against the legs' zeros
+    # (`changepoint.DriftSource`), on the fit before the term
+    drift_source: DriftSource | None = None
 
     def as_json(self) -> dict:
         return {
@@ -333,6 +343,7 @@ class Finding:
             "ambiguous_with": [r.label for r in self.rivals],
             "commanded_pose_gain": self.commanded_pose_gain,
             "plan": self.plan,
+            "drift_source": None if self.drift_source is None else self.drift_source.as_json(),
         }
 
 
@@ -1184,6 +1195,10 @@ def diagnose(
                     f"{1e3 * g['translation_rms_mm']:.1f} µm / "
                     f"{g['rotation_rms_arcsec']:.2f}″ RMS"
                 )
+                if cand.family == "t":  # the legs' drift, or the instrument's?
+                    finding.drift_source = drift_source(current, st, ambiguity)
+                    if finding.drift_source.words():
+                        finding.words += "; " + finding.drift_source.words()
                 step.added = f"term {cand.label}"
                 step.decision = f"add the term {cand.label}"
                 log(f"  -> discovered: {finding.words}")
