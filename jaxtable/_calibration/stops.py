@@ -445,15 +445,15 @@ def within_stop_errors(data, stop, alpha=None) -> list:
 
 
 WEIGHT_TOL = 0.02
-"""`weigh_stops` leaves the weights alike where no stop's σ differs from the typical stop's
-by more than this fraction (2 %: a weight within 4 % of the others changes a fit by less
-than its rounding matters)."""
+"""`weigh_stops` leaves the weights alike where the stops' σ differ from the typical stop's
+by less than this fraction in RMS over the readings (2 %: a lost cell or a glitch that
+leaves one stop of 60 a reading short, 15 % in its σ, does not call for a second fit)."""
 
 
 def weigh_stops(data, stops: "Stops", groups, sigma, stated):
     """(data with `relative_sigma`, `Stops` with `weighted`) where the stops were read a
-    different number of times; None where every stop's weight is within `WEIGHT_TOL` of the
-    others' (a file that read each stop equally often).
+    different number of times; None where their σ are within `WEIGHT_TOL` of the typical
+    stop's in RMS (a file that read each stop equally often, or all but a few).
 
     A stop's mean of k readings has variance σ_r² + σ_w² / k: the table's error at the
     stop (its repeatability σ_r, shared by the readings) and the instrument's noise σ_w
@@ -487,7 +487,7 @@ def weigh_stops(data, stops: "Stops", groups, sigma, stated):
         lo, hi = float(k.min()), float(k.max())
         if hi > lo and (name not in weighted or weighted[name][2] - weighted[name][1] < hi - lo):
             weighted[name] = (float(np.sqrt(rep2)), lo, hi)
-    if not np.any(np.abs(shape - 1.0) > WEIGHT_TOL):
+    if np.sqrt(np.mean((shape[counts >= 1] - 1.0) ** 2)) <= WEIGHT_TOL:
         return None
     return replace(data, relative_sigma=shape), replace(stops, weighted=weighted)
 
