@@ -237,6 +237,10 @@ def _calibrate(args) -> int:
     prior = _prior(args.prior)
     data = load_measurements(args.data)
     print(f"calibrating {', '.join(free)} on {len(data)} rows ...", file=sys.stderr)
+    if args.table is not None:
+        note = _fitted_model_note(args.table, table)
+        if note:
+            print(note, file=sys.stderr)
     try:
         st, cal = fit_screened(
             table,
@@ -276,6 +280,38 @@ def _calibrate(args) -> int:
     print(structure.words() if structure is not None else no_test)
     print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0
+
+
+def _fitted_model_note(path, table) -> str:
+    """What `calibrate` takes of a fitted model file given as its table: its table and the
+    table's hardware effects, its zero lengths as the controller's. The file's fitted
+    effects and its `[controller]` zero lengths (`validate`'s rule) are not used: say so."""
+    import numpy as np
+
+    from ._calibration.model_file import load_fitted_model
+    from ._effects import default_effects
+
+    model = load_fitted_model(path)
+    fitted = [n for n in (model.effects or {}) if n not in default_effects(table)]
+    moved = model.nominal_zero_lengths is not None and not np.allclose(
+        model.nominal_zero_lengths, table.zero_lengths, rtol=0, atol=1e-9
+    )
+    if not (fitted or moved):
+        return ""
+    parts = []
+    if fitted:
+        parts.append(f"its fitted effects ({', '.join(fitted)}) are not in this fit")
+    if moved:
+        parts.append(
+            "commanded lengths convert with its fitted zero lengths (a controller loaded with "
+            "the fitted table), not with its [controller] ones as validate does (a controller "
+            "still on its nominal table)"
+        )
+    return (
+        f"note: {path} is a fitted model: calibrate fits its table with the table's hardware "
+        f"effects; {'; '.join(parts)}. Where the controller still runs the nominal table, "
+        "calibrate from that table"
+    )
 
 
 def _diagnose(args) -> int:

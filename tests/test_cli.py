@@ -68,6 +68,32 @@ def test_simulate_then_calibrate(tmp_path, capsys):
     assert "converged: True" in report and "session 1: x +50.0" in report
 
 
+def test_calibrate_says_what_it_takes_of_a_fitted_model_given_as_its_table(tmp_path, capsys):
+    """A fitted model file as `calibrate --table`: the fit takes its table with the table's
+    hardware effects and its zero lengths as the controller's; the command line says that
+    the file's fitted effects are not in the fit and that `validate` converts with its
+    `[controller]` zero lengths instead. A plain table file gets no such note."""
+    nominal = jt.reference_table()
+    fitted = jt.perturb_table(nominal, 3)
+    model = jt.FittedModel(fitted, {"spiral": jt.Spiral.from_table(fitted),
+                                    "backlash": jt.Backlash(0.01)},
+                           nominal_zero_lengths=np.asarray(nominal.zero_lengths))  # fmt: skip
+    path = jt.save_fitted_model(model, tmp_path / "model.toml")
+    data = jt.simulate(nominal, fitted, jt.plan_random(30, 4), jt.tracker6(), seed=4)
+    jt.save_measurements(data, tmp_path / "data.csv")
+    for table, noted in ((path, True), (tmp_path / "plain.toml", False)):
+        if not noted:
+            jt.save_table(fitted, table)
+        argv = ["calibrate", str(tmp_path / "data.csv"), "--table", str(table), "--free",
+                "zero_lengths", "--out", str(tmp_path / "out")]  # fmt: skip
+        assert main(argv) == 0
+        err = capsys.readouterr().err
+        assert ("is a fitted model" in err) == noted, err
+        if noted:
+            assert "its fitted effects (backlash) are not in this fit" in err, err
+            assert "not with its [controller] ones as validate does" in err, err
+
+
 def test_calibrate_refuses_malformed_csv(tmp_path, capsys):
     path = tmp_path / "bad.csv"
     path.write_text(
