@@ -73,6 +73,7 @@ def test_small_batches_share_a_compiled_size_and_lose_no_row():
     assert compiles.count("jit(_vmap)") == 1, compiles
 
 
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="per-core pieces are the CPU's")
 def test_large_batches_run_in_per_core_pieces_and_lose_no_row(monkeypatch):
     """A large batch on the CPU runs as pieces of BLOCK-row blocks from host threads: the
     piece sizes by hand, and every row equal to numpy's value of the row function, for
