@@ -13,7 +13,6 @@ writes them all to FILE (default: device.json in the working directory). On a GP
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -21,20 +20,7 @@ import numpy as np
 
 import jaxtable as jt
 
-from .bench import _poses
-
-
-def _timed(fn, reps: int) -> tuple[float, float]:
-    """(first-call seconds, median seconds of `reps` further calls)."""
-    t0 = time.perf_counter()
-    fn()
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return first, float(np.median(times))
+from .bench import _poses, _timed
 
 
 def run(scale: int = 1, log=print) -> dict:
