@@ -211,7 +211,9 @@ class _Canonical:
     layout: Layout
     template: dict
     embed: np.ndarray
-    spans: tuple = ()  # per block of θ: (first, last + 1 column, first, last + 1 row of embed)
+    # per block of θ: (first, last + 1 column, first, last + 1 row of embed, and the row of
+    # each column where it is a selection, else None)
+    spans: tuple = ()
 
     def jacobian(self, J_c: np.ndarray) -> np.ndarray:
         """J_c @ embed (M, P) for the canonical Jacobian J_c (M, P_c), block by block of θ
@@ -219,8 +221,11 @@ class _Canonical:
         session, an effect field's elements): the dense product spent ~3 ms of each
         Jacobian of a 150-stop diagnosis multiplying zeros."""
         out = np.zeros((J_c.shape[0], self.embed.shape[1]))
-        for j0, j1, r0, r1 in self.spans:  # blocks of parameters, not data
-            out[:, j0:j1] = J_c[:, r0:r1] @ self.embed[r0:r1, j0:j1]
+        for j0, j1, r0, r1, pick in self.spans:  # blocks of parameters, not data
+            if pick is None:
+                out[:, j0:j1] = J_c[:, r0:r1] @ self.embed[r0:r1, j0:j1]
+            else:  # each column one canonical column: copied
+                out[:, j0:j1] = J_c[:, pick]
         return out
 
     def unravel(self, flat) -> dict:
@@ -292,9 +297,12 @@ def _make_canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
             embed[c : c + template[params.leaf(key)].size, j] = 1.0
         else:
             embed[c : c + n, j : j + n] = np.eye(n)
-        rows = np.flatnonzero(np.any(embed[:, j : j + n] != 0, axis=1))
+        block = embed[:, j : j + n]
+        rows = np.flatnonzero(np.any(block != 0, axis=1))
+        one = (np.sum(block != 0, axis=0) == 1) & (np.sum(block, axis=0) == 1)
+        pick = np.argmax(block != 0, axis=0) if one.all() else None
         if rows.size:
-            spans.append((j, j + n, int(rows[0]), int(rows[-1]) + 1))
+            spans.append((j, j + n, int(rows[0]), int(rows[-1]) + 1, pick))
         j += n
     return _Canonical(lay, jax.tree.map(jnp.asarray, template), embed, tuple(spans))
 
