@@ -105,8 +105,10 @@ class Stops:
             if self.early_rounds:
                 after = [f"{g} p = {t.varying[2]:.2g}" for g, t in self.trend_after.items()]
                 rows = len({r for r, _ in self.early})
+                pairs = any(t.columns for t in self.trend.values())
                 text += (
-                    f"; the first {self.early_rounds} reading(s) of each stop read three times "
+                    f"; the first {self.early_rounds} reading(s) of each stop read "
+                    f"{'twice' if pairs else 'three times'} "
                     f"or more were left out ({rows} rows), as not settled"
                 )
                 if any("varying" in t.found for t in self.trend_after.values()):
@@ -116,6 +118,12 @@ class Stops:
                         ": the readings kept show no trend that differs from stop to stop ("
                         + ", ".join(after)
                         + f", against {trend_bound(len(after)):.2g})"
+                    )
+                elif pairs:
+                    text += (
+                        " (one reading a stop is kept, which cannot be tested again: a table "
+                        "that settles slowly still falls short along the move at its second "
+                        "reading; read each stop three times or more to test that)"
                     )
                 else:
                     text += " (fewer than three readings a stop are kept: not tested again)"
@@ -213,28 +221,42 @@ class Trend:
     change: float
     drift: float
     found: tuple
+    # `pair_trend_test`'s (stops read twice): the columns whose F the parts (varying,
+    # common) are, each part (F, dof, p, rest dof) with p Bonferroni's over the group's
+    # columns; None: `trend_test`'s
+    columns: tuple | None = None
 
     def words(self, group: str) -> str:
         unit, f = _shown(group)
         parts = []
+        varying = (
+            ("along the move into the stop", "RMS from a stop's first reading to its second")
+            if self.columns
+            else ("differently from stop to stop", "RMS from a stop's first reading to its last")
+        )
         for name, size, how, span, cause in (
-            ("varying", self.change, "differently from stop to stop",
-             "RMS from a stop's first reading to its last",
-             "the table still settling after each move"),
+            ("varying", self.change, *varying, "the table still settling after each move"),
             ("common", self.drift, "the same way at every stop",
              "from the first reading to the last", "the instrument drifting while it reads"),
         ):  # fmt: skip
             if name in self.found:
-                F, dof, p = getattr(self, name)
+                F, dof, p, rest = (*getattr(self, name), self.dof_rest)[:4]
+                where = ""
+                if self.columns:
+                    c = self.columns[0 if name == "varying" else 1]
+                    where = f"{c}: "
+                    p_text = f"p = {p:.2g} over the group's columns"
+                else:
+                    p_text = f"p = {p:.2g}"
                 parts.append(
-                    f"{how}, {size * f:.3g} {unit} {span} (F = {F:.3g} on {dof} and "
-                    f"{self.dof_rest} dof, p = {p:.2g}): {cause}"
+                    f"{how}, {size * f:.3g} {unit} {span} ({where}F = {F:.3g} on {dof} and "
+                    f"{rest} dof, {p_text}): {cause}"
                 )
         return f"{group}: " + "; ".join(parts)
 
     def as_json(self, group: str) -> dict:
-        def part(t):
-            return {"F": t[0], "dof": [t[1], self.dof_rest], "p_value": t[2]}
+        def part(t):  # a pair test's part carries its column's rest dof
+            return {"F": t[0], "dof": [t[1], (*t, self.dof_rest)[3]], "p_value": t[2]}
 
         return {
             "found": list(self.found),
@@ -242,10 +264,110 @@ class Trend:
             "common": part(self.common),
             "first_to_last": _unit(group, self.change),
             "common_first_to_last": _unit(group, self.drift),
+            "test": "pairs along the move" if self.columns else "lines in reading order",
         }
 
 
-def trend_test(resid, read, stop, k) -> dict:
+PAIR_MIN_DOF = 10
+"""Rest degrees of freedom a column needs for `pair_trend_test` (its stops read twice
+beyond the test's 7 terms)."""
+
+
+def stop_moves(data, stop) -> np.ndarray:
+    """(S, 6) the commanded move into each stop (`stop_index`) as the pair test's terms:
+    its translation and its rotation each a unit vector (0 where that part did not move);
+    NaN for the first stop of each session (the move into it is unknown: the table may
+    have been homed in between)."""
+    cmd = np.asarray(data.cmd_pose, float)
+    first = np.searchsorted(stop, np.arange(stop.max() + 1))  # each stop's first row
+    c, session = cmd[first], np.asarray(data.session)[first]
+    m = np.full(c.shape, np.nan)
+    m[1:] = c[1:] - c[:-1]
+    m[np.r_[True, session[1:] != session[:-1]]] = np.nan
+    out = np.zeros_like(m)
+    for part, tiny in ((slice(0, 3), 1e-6), (slice(3, 6), 1e-9)):  # translation, rotation
+        norm = np.linalg.norm(m[:, part], axis=1, keepdims=True)
+        out[:, part] = np.where(norm > tiny, m[:, part] / np.where(norm > tiny, norm, 1.0), 0.0)
+    out[~np.isfinite(m).all(axis=1)] = np.nan
+    return out
+
+
+def _pair_parts(d, moves):
+    """One column's pair test: d (n,) first − second reading of each stop read twice,
+    `moves` (n, 6) the move into each. Least squares of d on [1, moves]; each part against
+    the full fit's residual: (varying (F, dof, p, rest), common (F, dof, p, rest), change
+    (n,) the fitted move part, intercept), or None with fewer than `PAIR_MIN_DOF` rest dof."""
+    from scipy.stats import f as f_dist
+
+    X = np.column_stack([np.ones(len(d)), moves])
+
+    def rss(A):
+        if A.shape[1] == 0:
+            return float(d @ d), 0, np.zeros(0)
+        beta, _, rank, _ = np.linalg.lstsq(A, d, rcond=None)
+        e = d - A @ beta
+        return float(e @ e), int(rank), beta
+
+    full, rank, beta = rss(X)
+    rest = len(d) - rank
+    if rest < PAIR_MIN_DOF or full <= 0:
+        return None
+    parts = []
+    for reduced in (X[:, :1], X[:, 1:]):  # without the move terms, without the intercept
+        ss, r, _ = rss(reduced)
+        dof = rank - r
+        F = ((ss - full) / dof) / (full / rest) if dof > 0 else float("nan")
+        parts.append((float(F), dof, float(f_dist.sf(F, dof, rest)) if dof > 0 else 1.0, rest))
+    return parts[0], parts[1], moves @ beta[1:], float(beta[0])
+
+
+def pair_trend_test(resid, read, stop, k, moves, groups) -> dict:
+    """{group: (varying, common, column of each, change, drift)} for the column `groups`
+    of stops read exactly twice (k (S, 6)), which `trend_test`'s lines cannot test (a line
+    through two readings leaves no scatter to judge it by). A stop's first reading minus
+    its second, per column, is regressed on the move into the stop (`stop_moves`: the unit
+    translation and rotation, 6 terms) and an intercept: readings of a table that had not
+    settled fall short along the move (**varying**: the move terms, 6 dof, whatever the
+    instrument's frame, which only mixes them), an instrument drifting while it reads
+    shifts every stop's difference alike (**common**: the intercept). Each part's F
+    against the fit's residual is exact for independent normal noise; each column is
+    tested on its own (columns of one group may have different σ) and a part's p is
+    Bonferroni's over the group's columns. `resid` (N, 6): each reading minus its stop's
+    mean; `read` (N, 6); `stop` (N,) nondecreasing; `moves` (S, 6)."""
+    from .._errors import POSE_COLUMNS
+
+    upto = np.cumsum(read, axis=0)
+    first = np.searchsorted(stop, np.arange(k.shape[0]))
+    before = np.where(first[:, None] > 0, upto[np.maximum(first - 1, 0)], 0)
+    place = upto - before[stop] - 1  # 0 at a column's first reading in its stop
+    sign = np.where(read & (k[stop] == 2), np.where(place == 0, 1.0, -1.0), 0.0)
+    d = np.zeros_like(k)
+    np.add.at(d, stop, sign * resid)  # first − second
+    known = np.isfinite(moves).all(axis=1)
+    out = {}
+    for g in groups:
+        tests = {}
+        for c in range(6)[GROUPS[g]]:  # a group's three columns
+            t = (k[:, c] == 2) & known
+            got = _pair_parts(d[t, c], moves[t]) if t.sum() > 7 else None
+            if got is not None:
+                tests[c] = got
+        if not tests:
+            continue
+        m = len(tests)
+        best = [min(tests, key=lambda c, i=i: tests[c][i][2]) for i in (0, 1)]
+        varying, common = (
+            (*tests[c][i][:2], min(1.0, m * tests[c][i][2]), tests[c][i][3])
+            for i, c in enumerate(best)
+        )
+        change = float(np.sqrt(np.mean(np.concatenate([t[2] for t in tests.values()]) ** 2)))
+        drift = float(np.sqrt(np.mean([t[3] ** 2 for t in tests.values()])))
+        names = tuple(POSE_COLUMNS[c] for c in best)
+        out[g] = (varying, common, names, change, drift)
+    return out
+
+
+def trend_test(resid, read, stop, k, moves=None) -> dict:
     """{group: `Trend`}: whether the readings of a stop move with the order they were taken
     in (a table that had not settled when the first were taken, an instrument drifting while
     it read), where the readings of a stop should be exchangeable (the table holds still and
@@ -255,9 +377,11 @@ def trend_test(resid, read, stop, k) -> dict:
     into one slope a column shared by every stop and the stops' own slopes about it. Each
     part's mean square over the rest's is F-distributed for readings with independent
     normal noise, whatever their σ and whatever the instrument's frame (each column on its
-    own); the two parts of each group share `TREND_ALPHA` equally. `resid` (N, 6): each
-    reading minus its stop's mean (0 where not read); `read` (N, 6); `stop` (N,)
-    nondecreasing; `k` (S, 6) readings a stop."""
+    own); the two parts of each group share `TREND_ALPHA` equally. A group none of whose
+    stops was read three times is tested on its stops read twice, with `moves` (S, 6)
+    (`stop_moves`; None: not tested), by `pair_trend_test`; the groups either test covers
+    share `TREND_ALPHA`. `resid` (N, 6): each reading minus its stop's mean (0 where not
+    read); `read` (N, 6); `stop` (N,) nondecreasing; `k` (S, 6) readings a stop."""
     from scipy.stats import f as f_dist
 
     # each reading's place among its stop's readings of its column, centred: the line's x
@@ -273,8 +397,13 @@ def trend_test(resid, read, stop, k) -> dict:
     tested = k >= 3
     slope = np.divide(xy, xx, out=np.zeros_like(xy), where=xx > 0)
     groups = [g for g, cols in GROUPS.items() if tested[:, cols].any()]
-    alpha = trend_bound(len(groups))
+    rest = [g for g in GROUPS if g not in groups]
+    pairs = {} if moves is None or not rest else pair_trend_test(resid, read, stop, k, moves, rest)
+    alpha = trend_bound(len(groups) + len(pairs))
     out = {}
+    for g, (varying, common, names, change, drift) in pairs.items():
+        found = tuple(n for n, t in (("varying", varying), ("common", common)) if t[2] < alpha)
+        out[g] = Trend(common, varying, common[3], change, drift, found, columns=names)
     for g in groups:
         cols = GROUPS[g]
         t = tested[:, cols]
@@ -314,11 +443,12 @@ def _first_rows(has, stop) -> np.ndarray:
     return first
 
 
-def _trend(measured, stop):
-    """`trend_test` of the readings `measured` (N, 6) in stops `stop`."""
+def _trend(measured, stop, moves=None):
+    """`trend_test` of the readings `measured` (N, 6) in stops `stop` (`moves`: the moves
+    into the stops, `stop_moves`)."""
     read, k, dev, total, _ = _about_stop(measured, stop)
     mean = np.divide(total, k, out=np.zeros_like(total), where=k > 0)
-    return trend_test(np.where(read, dev - mean[stop], 0.0), read, stop, k)
+    return trend_test(np.where(read, dev - mean[stop], 0.0), read, stop, k, moves)
 
 
 def settled(data, stop):
@@ -326,18 +456,22 @@ def settled(data, stop):
     of the readings kept): while the readings of the stops move with their order differently
     from stop to stop (`Trend.found` "varying": a table that had not settled when the first
     were taken), the first reading of each stop read three times or more is left out, and
-    the rest tested again. Readings that settle bias a stop's mean along the move into it,
+    the rest tested again; where the stops were read twice and their pairs show it
+    (`pair_trend_test`), the first of each pair (the second cannot be tested again).
+    Readings that settle bias a stop's mean along the move into it,
     which a fit takes for an effect that depends on the direction of travel (80 stops read
     4 times, 15 µm short at the first reading: structure, and diagnose added lead_scale to
     the spiral it should have stopped at). A trend the same at every stop (an instrument
     drifting while it reads) is not settling and leaves the readings as they are."""
     measured = np.asarray(data.measured, float)
-    first = _trend(measured, stop)
+    moves = stop_moves(data, stop)
+    first = _trend(measured, stop, moves)
     trend, early, rounds = first, [], 0
     while any("varying" in t.found for t in trend.values()):
         has = np.isfinite(measured).any(axis=1)
         count = np.bincount(stop[has], minlength=stop.max() + 1)
-        rows = _first_rows(has, stop)[count >= 3]
+        pairs = any(t.columns and "varying" in t.found for t in trend.values())
+        rows = _first_rows(has, stop)[count >= (2 if pairs else 3)]
         if len(rows) == 0:
             break
         r, c = np.nonzero(np.isfinite(measured[rows]))
@@ -345,7 +479,7 @@ def settled(data, stop):
         measured = measured.copy()
         measured[rows] = np.nan
         rounds += 1
-        trend = _trend(measured, stop)
+        trend = _trend(measured, stop, moves)
     if not early:
         return data, first, [], 0, first
     from .outliers import without
@@ -509,10 +643,14 @@ def merge_stops(data, screen: bool = True):
     glitches = within_stop_errors(data, stop) if screen else []
     if glitches:
         data = without(data, glitches)
+    read0 = np.isfinite(np.asarray(data.measured, float)).any(axis=1)
+    count0 = np.bincount(stop[read0], minlength=stop.max() + 1)  # before settling
     if screen:
         data, trend, early, rounds, kept = settled(data, stop)
     else:
-        trend, early, rounds, kept = _trend(np.asarray(data.measured, float), stop), [], 0, {}
+        measured = np.asarray(data.measured, float)
+        trend = _trend(measured, stop, stop_moves(data, stop))
+        early, rounds, kept = [], 0, {}
     measured = np.asarray(data.measured, float)
     read, k, dev, total, ref = _about_stop(measured, stop)
     has = read.any(axis=1)
@@ -559,13 +697,16 @@ def merge_stops(data, screen: bool = True):
     counts = np.zeros(measured.shape)
     counts[carry] = k[stop[carry]]
     multi = count > 1
-    if not multi.any():  # the glitches left one reading a stop
-        return replace(data, **changes), Stops(0, 0, 1.0, within, glitches, counts)
+    if not multi.any() and not early:  # the glitches left one reading a stop
+        return replace(data, **changes), Stops(0, 0, 1.0, within, glitches, counts=counts)
+    left = count  # the fit's stop means are of these
+    if not multi.any():  # settling left one reading a stop: the stops as read
+        count, multi = count0, count0 > 1
     info = Stops(
         stops=int(multi.sum()),
         rows=int(count[multi].sum()),
         per_stop=float(np.median(count[multi])),
-        typical=float(np.median(count[count > 0])),
+        typical=float(np.median(left[left > 0])),
         within=within,
         set_aside=glitches,
         counts=counts,
