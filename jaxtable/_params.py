@@ -263,6 +263,8 @@ def label(key: str) -> str:
     comp = comp.lstrip(".")
     if head == "frame":
         return f"instrument frame (session {index}) {comp}"
+    if head == "frame_drift":
+        return f"instrument frame drift (session {index}) {comp}"
     if key.startswith("target."):
         return f"target offset {key.partition('.')[2]}"
     effect, field = split(head)

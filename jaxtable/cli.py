@@ -233,6 +233,8 @@ def _calibrate(args) -> int:
     from ._reports.calibrate import write_calibration_report
 
     free = _names(args.free, "--free")
+    if args.frame_drift and args.no_frame:
+        raise UsageError("--frame-drift: the instrument frame is not estimated (--no-frame)")
     table = _table(args.table)
     prior = _prior(args.prior)
     data = load_measurements(args.data)
@@ -252,6 +254,7 @@ def _calibrate(args) -> int:
             noise=args.noise,
             outliers="keep" if args.keep_outliers else "set_aside",
             prior=prior,
+            frame_drift=args.frame_drift,
         )
         check_physical(cal)  # before anything is written
     except ValueError as e:
@@ -381,6 +384,8 @@ def _diagnose(args) -> int:
         )
     if diag.instrument_scale is not None:
         print(diag.instrument_scale.words())
+    if diag.instrument_drift is not None:
+        print(diag.instrument_drift.words())
     for f in diag.discovered:
         print(f"discovered: {f.words}")
     if diag.absorbed:
@@ -730,6 +735,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-frame",
         action="store_true",
         help="data are in the base frame: do not estimate the instrument frame",
+    )
+    sp.add_argument(
+        "--frame-drift",
+        action="store_true",
+        help="the instrument's frame drifts over each session (a tracker or its stand "
+        "warming up): fit a linear drift of it in the file's time as a nuisance beside the "
+        "frame (diagnose says when the data prefer it to a drift of the legs)",
     )
     compensation(sp)
     noise_options(sp, "estimate")

@@ -36,7 +36,12 @@ from .._errors import POSE_COLUMNS, KinematicsError, TableFileError
 from .._forward import RESULTS, ForwardOptions, forward_one
 from .._jit import jit
 from .._kinematics import in_stroke
-from .._rotation import best_rotation, euler_from_matrix, wrap_reading_difference
+from .._rotation import (
+    ARCSEC_PER_RAD,
+    best_rotation,
+    euler_from_matrix,
+    wrap_reading_difference,
+)
 from .._table import Table, check_table, replace
 from .._threads import one_blas_thread
 from .aliases import instrument_scale
@@ -102,6 +107,10 @@ class Layout:
     target_dofs: tuple
     n_sessions: int
     gauge: tuple  # names of the joint sets fitted modulo rigid motions
+    # the instrument frame drifts linearly over the file's time (θ "frame_drift": per session,
+    # the frame DOFs' change from time 0 to 1, `Context.time`): a tracker or its stand
+    # warming up
+    frame_drift: bool = False
 
 
 def nuisance_dofs(measured_mask: np.ndarray, motion=None) -> tuple[tuple, tuple]:
@@ -148,6 +157,9 @@ class Problem(eqx.Module):
 
 
 def build_model(problem: Problem, layout: Layout, theta):
+    """(table, effects, frame (S, 6), target (6,), frame drift (S, 6)) of θ: the start
+    table and effects moved by θ's steps, the instrument frame of each session and its
+    drift over the file's time (zeros unless `layout.frame_drift`)."""
     table, effects = problem.start, problem.effects
     changes = {}
     for name in layout.free:
@@ -167,7 +179,10 @@ def build_model(problem: Problem, layout: Layout, theta):
         if layout.target_dofs
         else jnp.zeros(6)
     )
-    return table, effects, frame, target
+    drift = jnp.zeros((layout.n_sessions, 6))
+    if layout.frame_drift and layout.frame_dofs:
+        drift = drift.at[:, np.array(layout.frame_dofs)].set(theta["frame_drift"])
+    return table, effects, frame, target, drift
 
 
 def _rows(problem: Problem):
@@ -283,12 +298,15 @@ def _make_canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
     )
     sessions = canonical_sessions(layout.n_sessions)
     effects = _padded_effects(problem.effects, layout.n_sessions)
-    lay = Layout(params.GEOMETRY + extra + fields, tuple(range(6)), tuple(range(6)), sessions, ())
+    lay = Layout(
+        params.GEOMETRY + extra + fields, tuple(range(6)), tuple(range(6)), sessions, (), True
+    )
     template = {  # a joint set's step in plain coordinates (18,), as `build_model` takes it
         n: np.zeros(18 if n in JOINTS else np.shape(params.get(problem.start, effects, n)))
         for n in lay.free
     }
     template["frame"] = np.zeros((sessions, 6))
+    template["frame_drift"] = np.zeros((sessions, 6))
     template["target"] = np.zeros(6)
     start, at = {}, 0
     for key in sorted(template):  # `ravel_pytree` order: dict keys sorted
@@ -301,8 +319,8 @@ def _make_canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
         n, c = sizes[key], start.get(params.leaf(key), 0)
         if key in params.JOINTS:
             embed[c : c + 18, j : j + n] = np.asarray(problem.bases[key])
-        elif key in ("frame", "target"):
-            dofs = layout.frame_dofs if key == "frame" else layout.target_dofs
+        elif key in ("frame", "frame_drift", "target"):
+            dofs = layout.target_dofs if key == "target" else layout.frame_dofs
             rows = np.add.outer(6 * np.arange(n // max(len(dofs), 1)), dofs).reshape(-1)
             embed[c + rows, j + np.arange(n)] = 1.0
         elif params.is_shared(key):
@@ -394,9 +412,10 @@ def _stop_blocks(problem: Problem, layout: Layout, rows: int = FIT_BLOCK) -> lis
 def _row_residual(model, s, guess, session, ctx, measured, weight):
     """One data row: ((reading − measured) / σ (6,), 0 where not measured; whether the
     forward solve succeeded), for `model` = `build_model(...)`."""
-    table, effects, frame, target = model
+    table, effects, frame, target, drift = model
     q, result, _, _ = forward_one(table, effects, s, guess, ForwardOptions(), ctx)
-    diff = wrap_reading_difference(observe(q, frame[session], target) - measured)
+    seen = frame[session] + drift[session] * ctx.time
+    diff = wrap_reading_difference(observe(q, seen, target) - measured)
     return diff * weight, result == RESULTS.successful
 
 
@@ -754,6 +773,16 @@ def _solve(
     return value, converged, steps, J, solved, r0, r
 
 
+def _session_span(problem: Problem, rows: np.ndarray, n_sessions: int) -> np.ndarray:
+    """(S,) the file's time (`Context.time`) each session's rows `rows` (N,) bool span, first
+    to last (0 for a session without such rows)."""
+    t, s = np.asarray(problem.ctx.time, float), np.asarray(problem.session)
+    lo, hi = np.full(n_sessions, np.inf), np.full(n_sessions, -np.inf)
+    np.minimum.at(lo, s[rows], t[rows])
+    np.maximum.at(hi, s[rows], t[rows])
+    return np.where(hi >= lo, hi - lo, 0.0)
+
+
 def _kabsch(P, Q):
     """Rotation R and translation t minimising |R P + t − Q| over rows (P, Q (N, 3))."""
     pc, qc = P.mean(0), Q.mean(0)
@@ -868,6 +897,38 @@ class Calibration:
     # and `covariance` are then the posterior's, `chi2` the data's alone
     prior_sigma: np.ndarray | None = None
     chi2_prior: float = 0.0
+    # (S, 6) mm / rad: each session's instrument frame drift from the file's time 0 to 1
+    # (`Context.time`; the frame at a row is `frame` + `frame_drift` · time), where the fit
+    # had one (`setup(..., frame_drift=True)`); None: the frames held still. `session_span`
+    # (S,): the file's time each session's measured rows span, first to last
+    frame_drift: np.ndarray | None = None
+    session_span: np.ndarray | None = None
+
+    def frame_drift_lines(self) -> list:
+        """A line a session where the fit had the instrument frame drift
+        (`frame_drift`): its fitted change over the session, first row to last, each DOF
+        ± σ."""
+        if self.frame_drift is None:
+            return []
+        lines = []
+        for s in range(np.shape(self.frame_drift)[0]):
+            span = 1.0 if self.session_span is None else float(self.session_span[s])
+            parts = []
+            for d in self.layout.frame_dofs:
+                key = f"frame_drift[{s + 1}].{params.POSE[d]}"
+                if key not in self.names:
+                    continue
+                i = self.names.index(key)
+                f, unit = (1e3 * span, " µm") if d < 3 else (ARCSEC_PER_RAD * span, "″")
+                parts.append(
+                    f"{params.POSE[d]} {f * self.value[i]:+.3g} ± {f * self.std[i]:.2g}{unit}"
+                )
+            if parts and span > 0:
+                lines.append(
+                    f"instrument frame drift over session {s + 1}, first row to last (a "
+                    f"nuisance of these data, not in the model): {', '.join(parts)}"
+                )
+        return lines
 
     def group_sigma(self) -> dict:
         """{"positions" | "angles": the σ the fit found for the group} (mm / rad), the
@@ -1045,6 +1106,7 @@ class Calibration:
                 f"{self.untested} reading(s) the fit would absorb whatever their error "
                 "(redundancy < 0.05): not tested for gross errors"
             )
+        lines += self.frame_drift_lines()
         if self.layout.frame_dofs and len(self.layout.frame_dofs) < 6:
             seen = [params.POSE[k] for k in self.layout.frame_dofs]
             unseen = [c for k, c in enumerate(params.POSE) if k not in self.layout.frame_dofs]
@@ -1136,9 +1198,9 @@ def parameter_keys(layout: Layout, theta0: dict, bases: dict) -> tuple[list, lis
                     else params.label(params.element_keys(key, (6, 3))[i])
                 )
             continue
-        if key == "frame":
+        if key in ("frame", "frame_drift"):
             new = [
-                f"frame[{s + 1}].{params.POSE[d]}"
+                f"{key}[{s + 1}].{params.POSE[d]}"
                 for s in range(v.shape[0])
                 for d in layout.frame_dofs
             ]
@@ -1305,7 +1367,7 @@ class Setup:
 
     def free_mask(self, free) -> np.ndarray:
         """(P,) 0/1 over the flat parameters: the blocks named in `free` plus the nuisance
-        frame/target blocks."""
+        frame/target blocks (a frame drift, θ "frame_drift", only where `free` names it)."""
         keep = tuple(free) + ("frame", "target")
         out = []
         for key in sorted(self.theta0):
@@ -1325,14 +1387,19 @@ def setup(
     sigma: dict | None = None,
     column_ratio: dict | None = None,
     prior: Tolerances | None = None,
+    frame_drift: bool = False,
 ) -> Setup:
     """Prepare `data` for fitting the `free` parameters of `nominal` + `effects` (see
-    `calibrate`). Every block in `free` gets a θ entry (zero = the start value). `sigma`:
+    `calibrate`). Every block in `free` gets a θ entry (zero = the start value); with
+    `frame_drift`, the instrument frame's DOFs get a drift over the file's time in each
+    session too (θ "frame_drift", `Layout.frame_drift`). `sigma`:
     {column: σ (mm / rad)} stated by the user (overrides the file's σ columns);
     `column_ratio`: the noise groups' parts' σ ratios, fixed (`noise.noise_model`; default
     None: each fit tests one σ per group); `prior`: tolerances whose σ make a Gaussian
     prior on the geometry (`jaxtable._calibration.prior`; None: none)."""
     free = params.as_names(free)
+    if frame_drift and not estimate_frame:
+        raise ValueError("frame_drift: the instrument frame is not estimated (estimate_frame)")
     require_measured(data)
     check_units(data)
     check_angle_convention(data)
@@ -1346,7 +1413,8 @@ def setup(
         gauge.append("base_joints")
     if len(target_dofs) >= 3 and "platform_joints" in free:
         gauge.append("platform_joints")
-    layout = Layout(free, frame_dofs, target_dofs, len(data.sessions), tuple(gauge))
+    drift = bool(frame_drift and frame_dofs)
+    layout = Layout(free, frame_dofs, target_dofs, len(data.sessions), tuple(gauge), drift)
     eff = resolve_effects(nominal, effects)
     bases = {
         n: (complement_basis(np.asarray(getattr(nominal, n))) if n in gauge else np.eye(18))
@@ -1370,6 +1438,8 @@ def setup(
     theta0 = zero_steps(nominal, eff, free, bases)
     if frame_dofs:
         theta0["frame"] = jnp.asarray(initial_frames(data, frame_dofs)[:, list(frame_dofs)])
+    if drift:
+        theta0["frame_drift"] = jnp.zeros((len(data.sessions), len(frame_dofs)))
     if target_dofs:
         theta0["target"] = jnp.zeros(len(target_dofs))
     keys, labels = parameter_keys(layout, theta0, bases)
@@ -1563,7 +1633,7 @@ def _fit_once(
     std = np.where(null_weight > 1e-6, np.inf, std)
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(np.sqrt(np.diag(cov)), np.sqrt(np.diag(cov)))
-    table, effects_fit, frame, target = build_model(problem, layout, value)
+    table, effects_fit, frame, target, drift = build_model(problem, layout, value)
     prior_sigma = None
     if has_prior.any():
         prior_sigma = np.where(has_prior, 1.0 / np.where(has_prior, w_prior, 1.0), np.inf)
@@ -1591,6 +1661,10 @@ def _fit_once(
         frame=np.asarray(frame),
         target=np.asarray(target),
         names=names,
+        frame_drift=(
+            np.asarray(drift) if any(n.startswith("frame_drift[") for n in names) else None
+        ),
+        session_span=_session_span(problem, measured_rows, layout.n_sessions),
         labels=labels,
         rms_sigma_before=sigma_rms(before, mask),
         rms_sigma_after=sigma_rms(after, mask),
@@ -1641,6 +1715,7 @@ def calibrate(
     method: str = "gauss_newton",
     outliers: str = "set_aside",
     prior: Tolerances | None = None,
+    frame_drift: bool = False,
 ) -> "Calibration":
     """Fit the `free` parameters (table leaves: base_joints, platform_joints, zero_lengths,
     ...; effect fields: "spiral.lead", ...; a shared field as one number for all legs:
@@ -1675,6 +1750,10 @@ def calibrate(
     `std` / `covariance` the posterior's: what the data cannot determine stays within its
     tolerance (σ = its prior σ) instead of drifting with σ = inf, and `prior_share` says
     how much of each parameter's prior variance the data left. Default None: no prior.
+    `frame_drift`: the instrument's frame also drifts, linearly over the file's time in
+    each session (a tracker or its stand warming up: every reading moves alike, where a
+    drift of the legs would move the platform differently over the workspace), fitted as a
+    nuisance beside the frame (`Calibration.frame_drift`); not part of the model.
     """
     cal = fit_screened(
         nominal,
@@ -1692,6 +1771,7 @@ def calibrate(
         method=method,
         outliers=outliers,
         prior=prior,
+        frame_drift=frame_drift,
     )[1]
     warn_not_physical(cal)
     return cal
@@ -1763,7 +1843,7 @@ def fit_screened(nominal: Table, data: Measurements, free, *, outliers="set_asid
     params.check_distinct(free)
     setup_kw = {
         k: kw.pop(k)
-        for k in ("effects", "compensated", "estimate_frame", "sigma", "prior")
+        for k in ("effects", "compensated", "estimate_frame", "sigma", "prior", "frame_drift")
         if k in kw
     }
 

@@ -336,7 +336,7 @@ def _pose_errors(thetas, problem, layout, s, poses, options):
     s (Q, 6) the controller gives for `poses` (Q, 6)."""
 
     def per_sample(theta):
-        table, effects, _, _ = build_model(problem, layout, theta)
+        table, effects, *_ = build_model(problem, layout, theta)
 
         def per_pose(si, qi):
             q, result, _, _ = forward_one(table, effects, si, qi, options)

@@ -91,6 +91,7 @@ def simulate(
     temperature=None,
     payload=None,
     time=None,
+    frame_drift=(0, 0, 0, 0, 0, 0),
     seed: int = 0,
 ) -> Measurements:
     """Measurements of the `true` table driven by a controller that believes `nominal`.
@@ -101,7 +102,8 @@ def simulate(
     (direction of travel from the row order, `temperature` °C and `payload` kg: scalars or
     (N,), `session`: one label or (N,) labels, `time` (N,) s: the clock the drift term `t`
     runs over, default the row order); the instrument (`target` (6,), `frame` (6,)
-    or one row per session, mm / rad) reads it with its noise. Returns the rows with
+    or one row per session, mm / rad, drifting by `frame_drift` (6,) or one row per session
+    from the file's time 0 to 1, `Context.time`) reads it with its noise. Returns the rows with
     commanded lengths, the instrument's columns and its σ (and temperature / payload if
     given).
     """
@@ -126,8 +128,10 @@ def simulate(
         true, cmd, effects=effects, nominal=nominal, guess=poses, context=batch_context(n, ctx)
     )
     frames = np.broadcast_to(np.asarray(frame, float), (len(order), 6))
+    drift = np.broadcast_to(np.asarray(frame_drift, float), (len(order), 6))
+    seen = frames[index] + drift[index] * np.asarray(ctx.time)[:, None]
     target = jnp.asarray(target, dtype=jnp.float64)
-    reading = np.asarray(run_batch(_reading, target, (np.asarray(actual), frames[index])))
+    reading = np.asarray(run_batch(_reading, target, (np.asarray(actual), seen)))
     noise = np.nan_to_num(np.asarray(instrument.noise, float))
     reading = reading + noise * np.random.default_rng(seed).normal(size=reading.shape)
     mask = instrument.mask

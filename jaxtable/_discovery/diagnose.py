@@ -391,6 +391,45 @@ def _absorbed_terms(cands: list, scr) -> list:
 
 
 @dataclass
+class InstrumentDrift:
+    """The instrument's frame found drifting over time (`drift_source` prefers it to a drift
+    of the legs' zeros, and its fit pays on held-out rows): fitted as a nuisance of these
+    data, per session and frame DOF (`Calibration.frame_drift`), not put in the model, which
+    then neither predicts nor compensates it. `source`: the comparison; `heldout_gain`: the
+    fractional fall of the held-out RMS when it was fitted; `fit`: the final fit, whose
+    `frame_drift_lines` give the values."""
+
+    source: DriftSource
+    heldout_gain: float
+    fit: Calibration = field(repr=False)
+
+    def words(self) -> str:
+        lines = self.fit.frame_drift_lines()
+        return (
+            "the instrument drifted: "
+            + self.source.words()
+            + f"; its frame's drift fitted in place of a drift of the legs (held-out RMS "
+            f"{-100 * self.heldout_gain:+.1f} %), not put in the model"
+            + ("; " + "; ".join(lines) if lines else "")
+        )
+
+    def as_json(self) -> dict:
+        cal = self.fit
+        keys = [k for k in cal.names if k.startswith("frame_drift[")]
+        pick = [cal.names.index(k) for k in keys]
+        span = [float(cal.session_span[int(k[12 : k.index("]")]) - 1]) for k in keys]
+        return {
+            "drift": {k: float(cal.value[i]) * t for k, i, t in zip(keys, pick, span)},
+            "std": {k: float(cal.std[i]) * t for k, i, t in zip(keys, pick, span)},
+            "units": "mm, rad: the frame's change over its session, first row to last",
+            "delta_chi2": dict(self.source.chi2),
+            "dof": dict(self.source.dof),
+            "heldout_gain": self.heldout_gain,
+            "words": self.words(),
+        }
+
+
+@dataclass
 class Diagnosis:
     """Outcome of `diagnose`. RMS in the same form as `Calibration`: `rms_sigma_before` /
     `rms_sigma_after` (σ-normalised residuals, 1.0 = at the noise; also under their earlier
@@ -440,6 +479,9 @@ class Diagnosis:
     # where the final model has `lead_scale` on every leg: its common part, which pose data
     # cannot tell from the instrument's length scale (`aliases.ScaleAlias`)
     instrument_scale: ScaleAlias | None = None
+    # the instrument's frame found drifting over time and fitted as a nuisance
+    # (`InstrumentDrift`), in place of a drift term of the legs; None: not found
+    instrument_drift: "InstrumentDrift | None" = None
 
     @property
     def rms_sigma_before(self) -> float:
@@ -557,6 +599,9 @@ class Diagnosis:
             "instrument_scale": None
             if self.instrument_scale is None
             else self.instrument_scale.as_json(),
+            "instrument_drift": None
+            if self.instrument_drift is None
+            else self.instrument_drift.as_json(),
             "selected_params": {
                 name: {f: {"value": v.tolist(), "std": s.tolist()} for f, (v, s) in p.items()}
                 for name, p in ((n, self.effect_params(n)) for n in self.selected)
@@ -606,7 +651,8 @@ def discovery_setup(
     parts (columns in sessions) keep fixed σ ratios, `column_ratio` ({group name: (6 S,)},
     default one σ per group): a fit of a model that misses an effect must not take the
     effect's excess in one column for that column's noise (`diagnose` measures the ratios on
-    its final model)."""
+    its final model). The instrument frame's drift over time (`setup`'s `frame_drift`) has θ
+    entries too, frozen unless a diagnosis finds the instrument drifting."""
     effects = {name: cls.null(len(data.sessions)) for name, cls in MODEL_EFFECTS.items()}
     free_all = GEOMETRY + tuple(
         dict.fromkeys(
@@ -625,6 +671,7 @@ def discovery_setup(
         compensated=compensated,
         sigma=sigma,
         column_ratio=ratio,
+        frame_drift=True,
     )
 
 
@@ -915,6 +962,9 @@ def diagnose(
 
     index = {k: i for i, k in enumerate(st.names)}
     term_keys: list = []  # parameter keys of the dictionary terms found so far
+    drift_keys = [k for k in st.names if k.startswith("frame_drift[")]
+    nuisance: list = []  # the instrument frame's drift, once found: freed in every fit
+    drifting = None  # (DriftSource, held-out gain) where the instrument was found drifting
 
     def free_mask(model, keys=None):
         """Geometry, the model's library effects, and the dictionary terms found (`keys`,
@@ -929,9 +979,14 @@ def diagnose(
         )
         fm = st.free_mask(GEOMETRY + blocks)
         legs = [f for form in forms if params.leg_of(form) for f in params.effect_parameters(form)]
-        for k in legs + list(term_keys if keys is None else keys):
+        for k in legs + list(term_keys if keys is None else keys) + nuisance:
             fm[index[k]] = 1.0
         return fm
+
+    def mask_of(keys) -> np.ndarray:  # (P,) 1 on the parameters `keys`
+        out = np.zeros(len(st.names))
+        out[[index[k] for k in keys]] = 1.0
+        return out
 
     def leg_forms_to_fit(model, cal) -> list:
         """The one-leg forms worth a refit at this step: for each effect the model does not
@@ -1090,7 +1145,7 @@ def diagnose(
             )
         consistent = not structure.structure and not strong and not upgrades and term is None
         step = Step(
-            ["geometry"] + model,
+            ["geometry"] + model + (["instrument drift"] if nuisance else []),
             current.chi2,
             current.dof,
             p,
@@ -1162,6 +1217,30 @@ def diagnose(
                         log(f"     ambiguous: {lib.effect} (library) / {cand.label}")
                     term = None
                     break
+        if term is not None and cand.family == "t" and drift_keys and not nuisance:
+            # a drift in time: the legs' (a term of the model) or the instrument's frame (a
+            # nuisance of these data, not of the table)? Where the data prefer the frame, its
+            # drift is fitted in place of the term, if it pays on held-out rows
+            source = drift_source(current, st, ambiguity)
+            if source.preferred == "instrument frame":
+                alt = fit(st, np.maximum(free_mask(model), mask_of(drift_keys)), noise=noise,
+                          theta0=current.theta)  # fmt: skip
+                h_old = heldout_rms(current, block_rows, mask, rescale=same_units(current, alt))
+                gain = 1.0 - heldout_rms(alt, block_rows, mask) / h_old
+                log(
+                    f"  the drift in time is the instrument's: {source.words()}; its frame's "
+                    f"drift fitted in place of {cand.label}: held-out RMS {-100 * gain:+.1f} %"
+                )
+                if gain > 0:
+                    nuisance += drift_keys
+                    drifting = (source, float(gain))
+                    step.added = "instrument frame drift"
+                    step.decision = (
+                        "fit the instrument frame's drift over time (a nuisance of these data, "
+                        "not put in the model)"
+                    )
+                    current = alt
+                    continue
         if term is not None:
             h_old = heldout_rms(current, block_rows, mask, rescale=same_units(current, trial))
             gain = 1.0 - heldout_rms(trial, block_rows, mask) / h_old
@@ -1289,6 +1368,7 @@ def diagnose(
         nominal=nominal,
         residual_model=residual_model,
         instrument_scale=instrument_scale(final, mask, alpha) if "lead_scale" in model else None,
+        instrument_drift=None if drifting is None else InstrumentDrift(*drifting, final),
     )
 
 

@@ -334,6 +334,8 @@ def markdown(diag: Diagnosis, figures: list[Path], source: str) -> str:
             )
         lines.append("")
     lines += _dictionary_lines(diag)
+    if diag.instrument_drift is not None:
+        lines += [f"**Instrument drift.** {diag.instrument_drift.words()}.", ""]
     if diag.not_applicable:
         lines += [
             "Not applicable to these data: "
