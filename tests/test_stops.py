@@ -347,15 +347,9 @@ def test_stops_read_twice_are_tested_for_settling_along_the_move():
     assert drifting.trend["positions"].drift == pytest.approx(truth, rel=0.3)
 
 
-def test_stops_read_twice_that_had_not_settled_are_fitted_on_their_second_readings(table):
-    """80 stops read twice (a 6-D tracker, the table 3 µm off at each stop), 15 µm short of
-    each stop along the move at the first reading and 15/e at the second: the stop means
-    carry 10 µm of shortfall along the move into each stop and the fit claims structure
-    (p = 0.001). The first reading of each stop is left out and the fit's σ is that of one
-    reading; the structure test then claims none at its 1 % (p = 0.03 here; 0.07 and 0.012
-    on two more files: the second readings still fall 5.5 µm short, which two readings a
-    stop cannot show, as the words say)."""
-    k, n = 2, 80
+def _not_settled(table, k, n):
+    """`n` stops read `k` times by a 6-D tracker (no σ), the table 3 µm off at each stop
+    and 15 µm short of it along the move at the first reading, settling by e a reading."""
     true = jt.perturb_table(table, 301)
     plan = jt.plan_random(n, 401)
     d = jt.simulate(table, true, np.repeat(plan, k, axis=0), jt.tracker6(), seed=1)
@@ -366,6 +360,19 @@ def test_stops_read_twice_that_had_not_settled_are_fitted_on_their_second_readin
     m = d.measured.copy()
     m[:, :3] += lag + own
     d = dataclasses.replace(d, measured=m, sigma=None)
+    return d
+
+
+def test_stops_read_twice_that_had_not_settled_are_fitted_on_their_second_readings(table):
+    """80 stops read twice (a 6-D tracker, the table 3 µm off at each stop), 15 µm short of
+    each stop along the move at the first reading and 15/e at the second: the stop means
+    carry 10 µm of shortfall along the move into each stop and the fit claims structure
+    (p = 0.001). The first reading of each stop is left out and the fit's σ is that of one
+    reading; the structure test then claims none at its 1 % (p = 0.03 here; 0.07 and 0.012
+    on two more files: the second readings still fall 5.5 µm short, which two readings a
+    stop cannot show, as the words say)."""
+    k, n = 2, 80
+    d = _not_settled(table, k, n)
     st, kept = fit_screened(table, d, jt.GEOMETRY, outliers="keep")  # the means of both
     assert kept.stops.early_rounds == 0 and "varying" in kept.stops.trend["positions"].found
     assert structure_test(kept, st).p_value < 0.01
@@ -386,16 +393,7 @@ def test_stops_that_had_not_settled_are_fitted_on_their_settled_readings(table):
     travel (p = 0.001 against the structure test's 1 %). The first reading of each stop is
     left out (80 rows, named in the words), and the fit of the rest claims none."""
     k, n = 4, 80
-    true = jt.perturb_table(table, 301)
-    plan = jt.plan_random(n, 401)
-    d = jt.simulate(table, true, np.repeat(plan, k, axis=0), jt.tracker6(), seed=1)
-    move = np.diff(np.vstack([np.zeros(6), plan]), axis=0)[:, :3]
-    short = -move / np.linalg.norm(move, axis=1, keepdims=True) * 0.015
-    lag = np.repeat(short, k, axis=0) * np.exp(-np.tile(np.arange(k), n))[:, None]
-    own = np.repeat(np.random.default_rng(1).standard_normal((n, 3)) * REP_POS, k, axis=0)
-    m = d.measured.copy()
-    m[:, :3] += lag + own
-    d = dataclasses.replace(d, measured=m, sigma=None)
+    d = _not_settled(table, k, n)
     st, kept = fit_screened(table, d, jt.GEOMETRY, outliers="keep")  # the means of all 4
     assert kept.stops.early_rounds == 0 and "varying" in kept.stops.trend["positions"].found
     test = structure_test(kept, st)
