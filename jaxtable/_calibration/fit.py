@@ -773,14 +773,15 @@ def _solve(
     return value, converged, steps, J, solved, r0, r
 
 
-def _session_span(problem: Problem, rows: np.ndarray, n_sessions: int) -> np.ndarray:
-    """(S,) the file's time (`Context.time`) each session's rows `rows` (N,) bool span, first
-    to last (0 for a session without such rows)."""
+def _session_times(problem: Problem, rows: np.ndarray, n_sessions: int) -> np.ndarray:
+    """(S, 2) the file's time (`Context.time`) of each session's first and last row of
+    `rows` (N,) bool (0, 0 for a session without such rows)."""
     t, s = np.asarray(problem.ctx.time, float), np.asarray(problem.session)
     lo, hi = np.full(n_sessions, np.inf), np.full(n_sessions, -np.inf)
     np.minimum.at(lo, s[rows], t[rows])
     np.maximum.at(hi, s[rows], t[rows])
-    return np.where(hi >= lo, hi - lo, 0.0)
+    empty = hi < lo
+    return np.stack([np.where(empty, 0.0, lo), np.where(empty, 0.0, hi)], axis=1)
 
 
 def _kabsch(P, Q):
@@ -899,10 +900,24 @@ class Calibration:
     chi2_prior: float = 0.0
     # (S, 6) mm / rad: each session's instrument frame drift from the file's time 0 to 1
     # (`Context.time`; the frame at a row is `frame` + `frame_drift` · time), where the fit
-    # had one (`setup(..., frame_drift=True)`); None: the frames held still. `session_span`
-    # (S,): the file's time each session's measured rows span, first to last
+    # had one (`setup(..., frame_drift=True)`); None: the frames held still. `session_time`
+    # (S, 2): the file's time of each session's first and last measured row
     frame_drift: np.ndarray | None = None
-    session_span: np.ndarray | None = None
+    session_time: np.ndarray | None = None
+
+    @property
+    def session_span(self) -> np.ndarray | None:
+        """(S,) the file's time each session's measured rows span, first to last."""
+        t = self.session_time
+        return None if t is None else np.asarray(t)[:, 1] - np.asarray(t)[:, 0]
+
+    def frames_at_end(self) -> np.ndarray:
+        """(S, 6) each session's instrument frame at its last measured row: `frame`, moved
+        by its drift where the fit had one (where the instrument was when the data ended)."""
+        if self.frame_drift is None or self.session_time is None:
+            return np.asarray(self.frame, float)
+        end = np.asarray(self.session_time)[:, 1:]
+        return np.asarray(self.frame, float) + np.asarray(self.frame_drift) * end
 
     def frame_drift_lines(self) -> list:
         """A line a session where the fit had the instrument frame drift
@@ -1664,7 +1679,7 @@ def _fit_once(
         frame_drift=(
             np.asarray(drift) if any(n.startswith("frame_drift[") for n in names) else None
         ),
-        session_span=_session_span(problem, measured_rows, layout.n_sessions),
+        session_time=_session_times(problem, measured_rows, layout.n_sessions),
         labels=labels,
         rms_sigma_before=sigma_rms(before, mask),
         rms_sigma_after=sigma_rms(after, mask),

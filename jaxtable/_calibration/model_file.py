@@ -21,7 +21,8 @@ It is a table file (DESIGN.md schema) with three more kinds of table:
                                                 that of a stop's mean)
     [instrument.frames."LABEL"]                 one per session label
     pose = [x, y, z, roll, pitch, yaw]          pose of the base frame in the instrument frame
-    sigma = [...]
+    sigma = [...]                               (a frame the fit let drift: at the session's
+                                                last row, where the instrument was last)
 """
 
 from dataclasses import dataclass, field
@@ -104,7 +105,8 @@ class FittedModel:
 
 
 def instrument_frames(cal: Calibration, sessions: list[str]) -> InstrumentFrames:
-    """The frames and target of a fit, with σ, keyed by the data's session labels."""
+    """The frames and target of a fit, with σ, keyed by the data's session labels (a frame
+    that drifted: at its session's last row, `Calibration.frames_at_end`)."""
     std = dict(zip(cal.names, cal.std))
 
     def sigma(prefix: str, dofs) -> np.ndarray:
@@ -114,7 +116,7 @@ def instrument_frames(cal: Calibration, sessions: list[str]) -> InstrumentFrames
         return out
 
     lay = cal.layout
-    frames = {lab: np.asarray(cal.frame[k], float) for k, lab in enumerate(sessions)}
+    frames = {lab: cal.frames_at_end()[k] for k, lab in enumerate(sessions)}
     frame_sigma = {lab: sigma(f"frame[{k + 1}]", lay.frame_dofs) for k, lab in enumerate(sessions)}
     noise, noise_std, lev = column_noise(cal)
     k, within = 1.0, np.full(6, np.nan)
