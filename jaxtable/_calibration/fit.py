@@ -919,25 +919,34 @@ class Calibration:
         end = np.asarray(self.session_time)[:, 1:]
         return np.asarray(self.frame, float) + np.asarray(self.frame_drift) * end
 
-    def frame_drift_lines(self) -> list:
-        """A line a session where the fit had the instrument frame drift
-        (`frame_drift`): its fitted change over the session, first row to last, each DOF
-        ± σ."""
+    def frame_drift_changes(self) -> dict:
+        """{`frame_drift[s].dof`: (session s, frame DOF, change, σ)} where the fit had the
+        instrument frame drift: each free drift parameter's change over its session, first
+        row to last (mm / rad); {} without a drift."""
         if self.frame_drift is None:
-            return []
-        lines = []
+            return {}
+        out = {}
         for s in range(np.shape(self.frame_drift)[0]):
             span = 1.0 if self.session_span is None else float(self.session_span[s])
-            parts = []
             for d in self.layout.frame_dofs:
                 key = f"frame_drift[{s + 1}].{params.POSE[d]}"
-                if key not in self.names:
-                    continue
-                i = self.names.index(key)
-                f, unit = (1e3 * span, " µm") if d < 3 else (ARCSEC_PER_RAD * span, "″")
-                parts.append(
-                    f"{params.POSE[d]} {f * self.value[i]:+.3g} ± {f * self.std[i]:.2g}{unit}"
-                )
+                if key in self.names:
+                    i = self.names.index(key)
+                    out[key] = (s, d, float(self.value[i]) * span, float(self.std[i]) * span)
+        return out
+
+    def frame_drift_lines(self) -> list:
+        """A line a session where the fit had the instrument frame drift
+        (`frame_drift_changes`): its fitted change over the session, first row to last,
+        each DOF ± σ."""
+        changes = self.frame_drift_changes()
+        lines = []
+        for s in sorted({c[0] for c in changes.values()}):  # sessions, not data
+            span = 1.0 if self.session_span is None else float(self.session_span[s])
+            parts = []
+            for _, d, v, sd in (c for c in changes.values() if c[0] == s):
+                f, unit = (1e3, " µm") if d < 3 else (ARCSEC_PER_RAD, "″")
+                parts.append(f"{params.POSE[d]} {f * v:+.3g} ± {f * sd:.2g}{unit}")
             if parts and span > 0:
                 lines.append(
                     f"instrument frame drift over session {s + 1}, first row to last (a "

@@ -321,6 +321,15 @@ def _pair_parts(d, moves):
     return parts[0], parts[1], moves @ beta[1:], float(beta[0])
 
 
+def _reading_place(read, stop, stops: int) -> np.ndarray:
+    """(N, 6) each reading's place among its stop's readings of its column (0 for the first;
+    `read` (N, 6) bool, `stop` (N,) nondecreasing over `stops` stops)."""
+    upto = np.cumsum(read, axis=0)
+    first = np.searchsorted(stop, np.arange(stops))
+    before = np.where(first[:, None] > 0, upto[np.maximum(first - 1, 0)], 0)
+    return upto - before[stop] - 1
+
+
 def pair_trend_test(resid, read, stop, k, moves, groups) -> dict:
     """{group: (varying, common, column of each, change, drift)} for the column `groups`
     of stops read exactly twice (k (S, 6)), which `trend_test`'s lines cannot test (a line
@@ -336,10 +345,7 @@ def pair_trend_test(resid, read, stop, k, moves, groups) -> dict:
     mean; `read` (N, 6); `stop` (N,) nondecreasing; `moves` (S, 6)."""
     from .._errors import POSE_COLUMNS
 
-    upto = np.cumsum(read, axis=0)
-    first = np.searchsorted(stop, np.arange(k.shape[0]))
-    before = np.where(first[:, None] > 0, upto[np.maximum(first - 1, 0)], 0)
-    place = upto - before[stop] - 1  # 0 at a column's first reading in its stop
+    place = _reading_place(read, stop, k.shape[0])
     sign = np.where(read & (k[stop] == 2), np.where(place == 0, 1.0, -1.0), 0.0)
     d = np.zeros_like(k)
     np.add.at(d, stop, sign * resid)  # first − second
@@ -385,11 +391,8 @@ def trend_test(resid, read, stop, k, moves=None) -> dict:
     from scipy.stats import f as f_dist
 
     # each reading's place among its stop's readings of its column, centred: the line's x
-    upto = np.cumsum(read, axis=0)
-    first = np.searchsorted(stop, np.arange(k.shape[0]))
-    before = np.where(first[:, None] > 0, upto[np.maximum(first - 1, 0)], 0)
     kk = k[stop]
-    line_x = np.where(read & (kk >= 3), upto - before[stop] - 1 - (kk - 1) / 2, 0.0)
+    line_x = np.where(read & (kk >= 3), _reading_place(read, stop, k.shape[0]) - (kk - 1) / 2, 0.0)
     xy, xx, yy = np.zeros_like(k), np.zeros_like(k), np.zeros_like(k)
     np.add.at(xy, stop, line_x * resid)
     np.add.at(xx, stop, line_x * line_x)

@@ -414,13 +414,10 @@ class InstrumentDrift:
         )
 
     def as_json(self) -> dict:
-        cal = self.fit
-        keys = [k for k in cal.names if k.startswith("frame_drift[")]
-        pick = [cal.names.index(k) for k in keys]
-        span = [float(cal.session_span[int(k[12 : k.index("]")]) - 1]) for k in keys]
+        changes = self.fit.frame_drift_changes()
         return {
-            "drift": {k: float(cal.value[i]) * t for k, i, t in zip(keys, pick, span)},
-            "std": {k: float(cal.std[i]) * t for k, i, t in zip(keys, pick, span)},
+            "drift": {k: c[2] for k, c in changes.items()},
+            "std": {k: c[3] for k, c in changes.items()},
             "units": "mm, rad: the frame's change over its session, first row to last",
             "delta_chi2": dict(self.source.chi2),
             "dof": dict(self.source.dof),
