@@ -426,7 +426,12 @@ def _validate(args) -> int:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the report says "fit" in words
             v = validate_model(
-                model, data, register=args.register, compensated=args.compensated, nominal=nominal
+                model,
+                data,
+                register=args.register,
+                compensated=args.compensated,
+                nominal=nominal,
+                frame_drift=args.frame_drift,
             )
     except ValueError as e:
         raise UsageError(f"{args.data}: {e}") from None
@@ -450,6 +455,8 @@ def _validate(args) -> int:
             + "; ".join(g.words() for g in v.set_aside[:5])
             + ("; ..." if len(v.set_aside) > 5 else "")
         )
+    for line in v.drift_lines() + v.trend_lines():
+        print(line)
     if v.noise_ratio:
         print(v.noise_words())
     print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
@@ -817,6 +824,14 @@ def build_parser() -> argparse.ArgumentParser:
         "stop; consecutive rows of one command, a stop read several times, count once); the "
         "rest are predicted (default: all rows, which makes the result a fit, not a "
         "prediction)",
+    )
+    sp.add_argument(
+        "--frame-drift",
+        action="store_true",
+        help="a new session's instrument frame drifts over the session (a tracker or its "
+        "stand warming up): register a linear drift of it in the file's time with the "
+        "frame, on the --register stops spread evenly over the session (first and last "
+        "among them) instead of its first ones; stored frames are used as stored",
     )
     sp.add_argument("--json", default=None, help="JSON result (default: OUT/validation.json)")
     compensation(sp)

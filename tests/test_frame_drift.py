@@ -3,6 +3,7 @@ fitted beside the frame (`calibrate(..., frame_drift=True)`, `--frame-drift`), a
 `diagnose` fits in place of a drift of the legs where the data prefer the instrument's."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -123,3 +124,149 @@ def test_a_drifting_tracker_is_fitted_as_a_nuisance(table, tmp_path, capsys):
     assert "--frame-drift: the instrument frame is not estimated" in capsys.readouterr().err
     with pytest.raises(ValueError, match="frame_drift: the instrument frame is not estimated"):
         jt.calibrate(table, d, jt.GEOMETRY, frame_drift=True, estimate_frame=False)
+
+
+# --- validate on a new day whose tracker drifts ----------------------------------------------
+
+FRAME_A = (50.0, -30.0, 20.0, np.deg2rad(1.2), np.deg2rad(-0.9), np.deg2rad(2.0))
+FRAME_B = (-20.0, 40.0, 5.0, np.deg2rad(-0.5), np.deg2rad(0.7), np.deg2rad(-1.5))
+TARGET = (30.0, -20.0, 80.0, 0.0, 0.0, 0.0)
+DAY2_DRIFT = np.array([30, -20, 10, 3, -2, 4]) * UNITS  # over the day, first row to last
+POSE = ("x", "y", "z", "roll", "pitch", "yaw")
+
+
+def _model_and_day2(table, k, drift=DAY2_DRIFT):
+    """A model fitted on 80 stops of a still tracker (session A), and 60 new stops measured
+    by a tracker set up anew (session B) drifting by `drift` (6,) over them."""
+    true = jt.perturb_table(table, 100 + k)
+    a = jt.simulate(table, true, jt.plan_random(80, 200 + k), jt.tracker6(), frame=FRAME_A,
+                    target=TARGET, session="A", seed=300 + k)  # fmt: skip
+    model = jt.fitted_model(jt.calibrate(table, a), table, a.sessions)
+    day2 = jt.simulate(table, true, jt.plan_random(60, 400 + k), jt.tracker6(), frame=FRAME_B,
+                       target=TARGET, session="B", seed=500 + k, frame_drift=drift)  # fmt: skip
+    return model, day2
+
+
+def _drift_z(v, drift=DAY2_DRIFT) -> np.ndarray:
+    """(6,) (registered − true change over the session) / its σ."""
+    d = v.frames["B"]["drift"]
+    file_units = np.array([1.0] * 3 + [np.rad2deg(1.0)] * 3)
+    got = np.array([d["change"][c] for c in POSE])
+    std = np.array([d["std"][c] for c in POSE])
+    return (got - drift * file_units) / std
+
+
+def test_validate_registers_a_new_day_s_drifting_tracker(table, tmp_path, capsys):
+    """A model fitted with a still tracker predicts 60 stops of a new day whose tracker,
+    set up anew, drifts 10–30 µm and 2–4″ over them. Its frame registered still on the
+    first 10 stops, the prediction errs by more than the noise on the positions (a model
+    that holds, taken for a failing one) and validate says the residuals drift in time;
+    with `frame_drift` the frame and its drift are registered on 10 stops spread over the
+    day (its first and last among them), both groups are within the noise, and each
+    registered change lies within 3.5 σ of the truth. The command line's --frame-drift
+    prints and reports the same, and refuses one registration stop."""
+    model, day2 = _model_and_day2(table, 0)
+    still = jt.validate(model, day2, register=10)
+    ratio, _, bound = still.noise_groups["positions"]
+    assert ratio > bound, still.noise_groups
+    assert set(still.time_trend) == {"B"}, still.time_trend
+    p, column, change = still.time_trend["B"]
+    assert p < 1e-6 and column in POSE[:3], still.time_trend
+    assert still.trend_lines()[0].startswith("session B: the predicted residuals drift in time")
+    assert still.frames["B"]["drift"] is None
+    v = jt.validate(model, day2, register=10, frame_drift=True)
+    for g, (r, e, b) in v.noise_groups.items():
+        assert r < b, (g, r, e, b)
+    assert v.time_trend == {}
+    # the registration: 10 stops spread over the day, its first and last among them
+    rows = np.flatnonzero(v.registered)
+    assert len(rows) == 10 and rows[0] == 0 and rows[-1] == len(day2) - 1, rows
+    assert np.all(np.diff(rows) >= 5), rows
+    z = _drift_z(v)
+    assert np.all(np.abs(z) < 3.5), z
+    # the pose reported is the frame at the day's first row: where the model's geometry
+    # puts the still tracker of the same day without its drift, registered on every stop
+    _, still_day = _model_and_day2(table, 0, drift=np.zeros(6))
+    with pytest.warns(UserWarning, match="every row was used to register a frame"):
+        ref = jt.validate(model, still_day).frames["B"]["pose"]
+    np.testing.assert_allclose(v.frames["B"]["pose"], ref, rtol=0, atol=0.02)
+    assert v.drift_lines()[0].startswith("session B: the instrument frame drifted over the")
+    model_path = jt.save_fitted_model(model, tmp_path / "model.toml")
+    jt.save_measurements(day2, tmp_path / "day2.csv")
+    argv = ["validate", str(model_path), str(tmp_path / "day2.csv"), "--register", "10"]
+    out = tmp_path / "v"
+    assert main(argv + ["--frame-drift", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert v.drift_lines()[0] in printed, printed
+    assert "within the noise the model's fit found" in printed
+    assert v.drift_lines()[0] in (out / "report.md").read_text()
+    doc = json.loads((out / "validation.json").read_text())
+    for c, x in v.frames["B"]["drift"]["change"].items():  # the file's digits aside
+        assert doc["frames"]["B"]["drift"]["change"][c] == pytest.approx(x, rel=1e-6)
+    assert doc["time_trend"] == {}
+    assert main(argv + ["--out", str(out)]) == 0
+    assert "the predicted residuals drift in time" in capsys.readouterr().out
+    doc = json.loads((out / "validation.json").read_text())
+    assert doc["time_trend"]["B"]["p"] == pytest.approx(p, rel=1e-9)
+    assert main(argv[:-1] + ["1", "--frame-drift", "--out", str(out)]) == 2
+    assert "it needs at least 2 stops of each new session" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_drift_registered_on_a_new_day_over_200_tables(table):
+    """200 tables, each fitted on 80 stops of a still tracker, then 60 stops of a new day
+    predicted with the frame registered on 10 stops: (a) a tracker drifting 10–30 µm and
+    2–4″ over the day, its drift registered with the frame (`frame_drift`): a model that
+    holds goes above the noise bound (≥ 99.9 % for each group) in at most 2 of 200, the
+    mean log(ratio / expected) is within ±0.03 (the leverage of a frame extrapolated in
+    time is in the expected ratio), and the 1,200 registered changes' z = (registered −
+    true) / σ have mean within ±0.1 and SD within 0.9–1.1; (b) a still tracker registered
+    still: the residuals are named as drifting in time (p < `TREND_P` = 0.001) in at most
+    2 of 200 (at a 0.2 % rate 3 or more come in 1 %)."""
+    from jaxtable._calibration.validate import TREND_P
+
+    above, trend, logs, zs = 0, 0, [], []
+    for k in range(200):
+        model, day2 = _model_and_day2(table, k)
+        v = jt.validate(model, day2, register=10, frame_drift=True)
+        above += any(r > b for r, _, b in v.noise_groups.values())
+        logs.append([np.log(r / e) for r, e, _ in v.noise_groups.values()])
+        zs.append(_drift_z(v))
+        _, still_day = _model_and_day2(table, k, drift=np.zeros(6))
+        found = jt.validate(model, still_day, register=10).time_trend
+        trend += bool(found)
+        assert all(p < TREND_P for p, _, _ in found.values())
+    zs = np.ravel(zs)
+    assert above <= 2, above
+    np.testing.assert_array_less(np.abs(np.mean(logs, axis=0)), 0.03)
+    assert abs(np.mean(zs)) < 0.1 and 0.9 < np.std(zs) < 1.1, (np.mean(zs), np.std(zs))
+    assert trend <= 2, trend
+
+
+def test_the_time_trend_p_value_has_its_law_on_noise():
+    """`time_trend` on 2000 noise-only residual sets (50 rows, columns of different σ, a few
+    lost cells, an uneven clock): its p (Bonferroni over the columns of the smallest
+    per-column p) has the law P(p ≤ x) = 1 − (1 − x / 6)⁶ (Kolmogorov–Smirnov, on p < 1;
+    the mass at p = 1 as that law gives it); a drift of 3 σ over the rows is found in
+    every set at p < 1e-3."""
+    from scipy.stats import kstest
+
+    from jaxtable._calibration.validate import TREND_P, time_trend
+
+    rng = np.random.default_rng(7)
+    sigma = np.array([1.0, 1.0, 3.0, 0.1, 0.1, 0.2])
+    ps, found = [], 0
+    for _ in range(2000):
+        t = np.sort(rng.uniform(0, 1, 50))
+        e = rng.normal(0, 1, (50, 6)) * sigma
+        e[rng.integers(0, 50, 5), rng.integers(0, 6, 5)] = np.nan
+        ps.append(time_trend(e, t)[0])
+        drifting = e + 3 * sigma * (t - 0.5)[:, None]
+        found += time_trend(drifting, t)[0] < TREND_P
+    ps = np.array(ps)
+    law = lambda x: 1 - (1 - np.minimum(x, 6) / 6) ** 6  # noqa: E731
+    inside = ps[ps < 1]
+    # conditional law on p < 1: F(x) / F(1)
+    assert kstest(inside, lambda x: law(x) / law(1.0)).pvalue > 0.01
+    assert abs(np.mean(ps == 1) - (1 - law(1.0))) < 4 * np.sqrt(law(1.0) * (1 - law(1.0)) / 2000)
+    assert found == 2000

@@ -1303,11 +1303,14 @@ def test_the_validation_bound_s_false_alarm_rate_over_200_tables(table):
 
 
 def test_frame_registration_recovers_a_known_frame_with_rows_padded(table, monkeypatch):
-    """`register_frame` on noise-free readings of random poses through FRAME_B and TARGET
+    """`registration` on noise-free readings of random poses through FRAME_B and TARGET
     (`observe`, one pose at a time): the frame back to 1e-9 from a start 5 mm / 0.6° off,
     for 9 and 13 rows (both solved as 16, the extra rows at zero weight: one compiled
     program) and with a lost cell in each column; `readings` (the batched form) equals
-    `observe` row by row."""
+    `observe` row by row. With a drift (the frame at row i FRAME_B + d · tᵢ, tᵢ on an
+    uneven clock), the frame at the rows' mean time and the drift back to 1e-9, and the
+    covariance for σ given equals (JᵀJ)⁻¹, J the central differences of the readings / σ
+    (σ in the ratio the registration weighs positions and angles: mm and mm of arc)."""
     from conftest import quick_jit, random_poses
 
     from jaxtable._calibration import validate as v
@@ -1331,9 +1334,32 @@ def test_frame_registration_recovers_a_known_frame_with_rows_padded(table, monke
     lost = meas.copy()
     lost[np.arange(6), np.arange(6)] = np.nan
     for q, m in ((poses[:9], meas[:9]), (poses, meas), (poses, lost)):
-        got = v.register_frame(q, m, target, range(6), start, 300.0)
-        np.testing.assert_allclose(got, frame, rtol=0, atol=1e-9)
+        got = v.registration(q, m, target, range(6), start, 300.0)
+        np.testing.assert_allclose(got.frame, frame, rtol=0, atol=1e-9)
+        assert np.all(got.drift == 0)
     assert shapes == [(16, 6)] * 3
+    # a drifting frame, on an uneven clock
+    t = np.sort(np.random.default_rng(5).uniform(0, 1, len(poses)))
+    d = np.array([0.03, -0.02, 0.01, 2e-5, -1e-5, 3e-5])
+    moving = frame + (t - t.mean())[:, None] * d
+    meas = np.stack([np.asarray(one(q, f, target)) for q, f in zip(poses, moving)])
+    sigma = np.array([0.005] * 3 + [0.005 / 300.0] * 3)  # as the registration weighs them
+    got = v.registration(poses, meas, target, range(6), start, 300.0, time=t,
+                         sigma=np.broadcast_to(sigma, meas.shape))  # fmt: skip
+    assert got.t0 == pytest.approx(t.mean(), rel=1e-12)
+    np.testing.assert_allclose(got.frame, frame, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.drift, d, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.at(t), moving, rtol=0, atol=1e-9)
+
+    def unit_readings(p):  # readings / σ for frame (6) and drift (6) parameters p
+        at = p[:6] + (t - t.mean())[:, None] * p[6:]
+        return np.ravel(np.stack([one(q, f, target) for q, f in zip(poses, at)]) / sigma)
+
+    p0, h = np.concatenate([frame, d]), np.tile([1e-4] * 3 + [1e-7] * 3, 2)
+    J = np.stack([(unit_readings(p0 + e) - unit_readings(p0 - e)) / 2 for e in np.diag(h)], 1)
+    J = J / h
+    np.testing.assert_allclose(got.cov, np.linalg.inv(J.T @ J), rtol=1e-5)
+    np.testing.assert_allclose(got.drift_std(), np.sqrt(np.diag(got.cov))[6:], rtol=1e-12)
 
 
 def test_validate_predicts_a_new_session_after_registering_its_frame(table, sessions, tmp_path):

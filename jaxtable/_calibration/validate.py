@@ -8,17 +8,20 @@ prediction. A new session (a tracker set up anew) has its frame registered on it
 `register` stops (rows in a file of one row a stop; a stop read several times, consecutive
 rows of one command, counts once), target kept from the model, and the rest are predicted;
 with no `register` (default) every row of a new session is used for the registration and the
-result is a fit, not a prediction.
+result is a fit, not a prediction. A tracker that drifts over the new session (`frame_drift`)
+has its drift registered with its frame, on `register` stops spread over the session.
 """
 
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
+from scipy.stats import t as t_dist
 
 from .. import _params as params
 from .._api import forward_solve
@@ -64,7 +67,9 @@ class Validation:
       minus the lengths the model says the actuators produced), None unless all six columns
       are measured;
     - `frames`: {session label: {"source": "stored" | "registered", "pose": [x, y, z mm,
-      roll, pitch, yaw deg], "rows_registered": n}};
+      roll, pitch, yaw deg] (a drifting frame's at the session's first row),
+      "rows_registered": n, "drift": None, or (`frame_drift`) {"change": {DOF: its change
+      over the session, first row to last, mm / deg}, "std": {DOF: its σ}}}};
     - `residual` (N, 6): measured − predicted reading (mm / rad, NaN where not measured);
       `leg_residual` (N, 6) mm or None; `predicted_pose` (N, 6): the model's pose per stop;
     - `is_prediction`: False when every row was used to register a frame (a fit);
@@ -88,6 +93,12 @@ class Validation:
       freedom adds p / m to h for the rows predicted through it (its error is in each);
       on the rows it was registered on, and on the fit's own rows, the ratio is below
       √(1 + h) by the share the fit took. Both empty for a model file without the noise.
+    - `time_trend`: {label: (p, column, change)} for a new session whose frame was
+      registered held still and whose predicted residuals drift in time (`time_trend`:
+      p < `TREND_P` over its columns): the column that drifts most surely and its change
+      over the session, first row to last (mm / deg). A tracker drifting since its
+      registration shows so (`frame_drift` registers the drift), as does an effect of the
+      legs that changes in time.
     """
 
     rows_registered: int
@@ -105,6 +116,7 @@ class Validation:
     set_aside: list = field(default_factory=list)  # `GrossError`s no table could produce
     repeated: list = field(default_factory=list)  # `Repeat`s: rows a logger wrote twice
     stops: object | None = None  # `stops.Stops`: stops read more than once, scored at the mean
+    time_trend: dict = field(default_factory=dict)  # {session: (p, column, change)}
 
     @property
     def is_prediction(self) -> bool:
@@ -130,6 +142,43 @@ class Validation:
             verdict = f"the {what} is within the noise the model's fit found"
         return f"RMS / the noise σ of the model's fit: {parts}: {verdict}"
 
+    def drift_lines(self) -> list:
+        """A line a session whose frame was registered with a drift: its change over the
+        session, first row to last, each DOF ± σ (µm, arcsec)."""
+        lines = []
+        for label, f in self.frames.items():
+            if not f.get("drift"):
+                continue
+            parts = []
+            for c, v in f["drift"]["change"].items():
+                scale, unit = (1e3, " µm") if c in params.XYZ else (3600.0, "″")
+                sd = f["drift"]["std"][c]
+                parts.append(
+                    f"{c} {scale * v:+.3g}"
+                    + (f" ± {scale * sd:.2g}" if np.isfinite(sd) else "")
+                    + unit
+                )
+            lines.append(
+                f"session {label}: the instrument frame drifted over the session, first row "
+                f"to last (registered with the frame on {f['rows_registered']} row(s) "
+                f"across it): {', '.join(parts)}"
+            )
+        return lines
+
+    def trend_lines(self) -> list:
+        """A line a session in `time_trend`."""
+        lines = []
+        for label, (p, column, change) in self.time_trend.items():
+            scale, unit = (1e3, "µm") if column in params.XYZ else (3600.0, "″")
+            lines.append(
+                f"session {label}: the predicted residuals drift in time ({column} "
+                f"{scale * change:+.3g} {unit} over the session, first row to last; p = "
+                f"{p:.2g} over its columns): an instrument frame drifting since its "
+                "registration shows so (--frame-drift registers a drift with the frame), "
+                "as does an effect of the legs that changes in time"
+            )
+        return lines
+
     def as_json(self) -> dict:
         return {
             "rows_registered": self.rows_registered,
@@ -144,6 +193,10 @@ class Validation:
             ],
             "repeated_rows": [{"row": r.row, "of": r.of} for r in self.repeated],
             "stops_read_more_than_once": None if self.stops is None else self.stops.as_json(),
+            "time_trend": {
+                label: {"p": p, "column": c, "change": ch}
+                for label, (p, c, ch) in self.time_trend.items()
+            },
             "rms_over_noise": self.noise_ratio,
             "rms_over_noise_groups": {
                 g: {"ratio": r, "expected": e, "bound": b}
@@ -153,34 +206,88 @@ class Validation:
 
 
 @jit
-def _register(q, m, w, E, start, target):
+def _register(q, m, w, E, D, tt, start, target):
+    """The frame `start` + E a + tt · (D b) (tt (M,): each row's time; D (6, 0): no drift)
+    that best maps the poses `q` (M, 6) to the readings `m` (M, 6) at weights `w` (M, 6):
+    (frame at tt = 0 (6,), drift per unit tt (6,), the weighted residual's Jacobian in
+    (a, b) at the solution (M·6, p))."""
+    nf = E.shape[1]
+
+    def frames(p):
+        return start + E @ p[:nf] + tt[:, None] * (D @ p[nf:])[None, :]
+
     def resid(p, _):
-        frame = start + E @ p
-        r = readings(q, jnp.broadcast_to(frame, q.shape), target) - m
+        r = readings(q, frames(p), target) - m
         return (wrap_reading_difference(r) * w).reshape(-1)
 
     solver = optx.GaussNewton(rtol=1e-10, atol=1e-10, linear_solver=lx.SVD(rcond=1e-9))
-    sol = optx.least_squares(resid, solver, jnp.zeros(E.shape[1]), max_steps=50, throw=False)
-    return start + E @ sol.value
+    p0 = jnp.zeros(nf + D.shape[1])
+    sol = optx.least_squares(resid, solver, p0, max_steps=50, throw=False)
+    J = jax.jacfwd(lambda p: resid(p, None))(sol.value)
+    return start + E @ sol.value[:nf], D @ sol.value[nf:], J
 
 
-def register_frame(q, measured, target, dofs, start, radius: float) -> np.ndarray:
-    """Instrument frame (6,) that best maps the model's poses `q` (M, 6) with `target` to
+@dataclass
+class Registration:
+    """A session's frame registered on some of its rows (`registration`): `frame` (6,) at
+    time `t0` (the mean time of the rows registered on), `drift` (6,) its change per unit
+    of the file's time (`Context.time`; zeros without a drift), `cov` (p, p) the covariance
+    of the registered components (frame DOFs, then drift DOFs; mm / rad) for the readings'
+    σ given, NaN without them, `dofs` the frame DOFs registered."""
+
+    frame: np.ndarray
+    drift: np.ndarray
+    t0: float
+    cov: np.ndarray
+    dofs: tuple
+
+    def at(self, time) -> np.ndarray:
+        """(M, 6) the frame at the times `time` (M,)."""
+        return self.frame + (np.asarray(time, float) - self.t0)[:, None] * self.drift
+
+    def drift_std(self) -> np.ndarray:
+        """(6,) σ of the drift per unit time (0 for DOFs not registered)."""
+        out = np.zeros(6)
+        k = len(self.dofs)
+        if self.cov.shape[0] > k:
+            out[list(self.dofs)] = np.sqrt(np.diag(self.cov)[k:])
+        return out
+
+
+def registration(
+    q, measured, target, dofs, start, radius: float, time=None, sigma=None
+) -> Registration:
+    """The instrument frame that best maps the model's poses `q` (M, 6) with `target` to
     the `measured` readings (M, 6, NaN = not measured), over the frame components `dofs`,
-    from `start` (6,). Least squares with angles as mm of arc at `radius` (Gauss-Newton,
-    truncated-SVD steps, so components the rows cannot determine stay at `start`), one
-    compiled program for every M up to the next power of two (`run_batch`'s row buckets;
-    rows padded with zero weight)."""
+    from `start` (6,); with `time` (M,) also a linear drift of those components in time.
+    Least squares with angles as mm of arc at `radius` (Gauss-Newton, truncated-SVD steps,
+    so components the rows cannot determine stay at `start`), one compiled program for
+    every M up to the next power of two (`run_batch`'s row buckets; rows padded with zero
+    weight). `sigma` (M, 6): the readings' σ (mm / rad), for `Registration.cov`."""
     q = np.asarray(q, float)
+    n = len(q)
     mask = np.isfinite(measured)
     w = np.where(mask, 1.0, 0.0) * np.array([1.0] * 3 + [radius] * 3)
     m = np.where(mask, measured, 0.0)
-    rows = chunk_rows(len(q), max(len(q), LARGE_BATCH), min_rows=8)  # run_batch's buckets
-    q, m = _pad_rows(q, rows), _pad_rows(m, rows)
-    w = np.concatenate([w, np.zeros((rows - len(w), 6))])
+    t = np.zeros(n) if time is None else np.asarray(time, float)
+    t0 = float(np.average(t, weights=mask.sum(axis=1))) if time is not None else 0.0
+    rows = chunk_rows(n, max(n, LARGE_BATCH), min_rows=8)  # run_batch's buckets
+    q, m, tt = _pad_rows(q, rows), _pad_rows(m, rows), _pad_rows(t[:, None] - t0, rows)[:, 0]
+    w = np.concatenate([w, np.zeros((rows - n, 6))])
     E = np.eye(6)[:, list(dofs)]
+    D = E if time is not None else np.zeros((6, 0))
     start, target = np.asarray(start, float), np.asarray(target, float)
-    return np.asarray(_register(q, m, w, E, start, target))
+    frame, drift, J = _register(q, m, w, E, D, tt, start, target)
+    cov = np.full((J.shape[1], J.shape[1]), np.nan)
+    if sigma is not None and np.all(np.isfinite(np.asarray(sigma)[mask])):
+        J = np.asarray(J)
+        s = np.concatenate([np.where(mask, sigma, 0.0), np.zeros((rows - n, 6))])
+        bread = np.linalg.pinv(J.T @ J, rcond=1e-12, hermitian=True)
+        meat = (J * ((w * s).reshape(-1) ** 2)[:, None]).T @ J  # Jᵀ diag((w σ)²) J
+        cov = bread @ meat @ bread
+    return Registration(np.asarray(frame), np.asarray(drift), t0, cov, tuple(dofs))
+
+
 
 
 def _measured_pose(reading, frame, target):
@@ -200,6 +307,39 @@ def _leg_residual_row(shared, row):
     return length_residual(table, effects, _measured_pose(reading, frame, target), s, ctx)
 
 
+def _registration_rows(rows, stop, register: int | None, spread: bool) -> np.ndarray:
+    """The rows of a new session (`rows`, in order) its frame is registered on: those of its
+    first `register` stops (`stop` (N,): each row's stop), all of them for None; `spread`
+    (a drift registered with the frame): `register` stops spread evenly over the session,
+    its first and last among them (a drift is registered over the time it spans)."""
+    order = np.unique(stop[rows])  # stop indices grow with the rows
+    if register is None or register >= len(order):
+        return rows
+    if spread:
+        if register < 2:
+            raise ValueError(
+                "--frame-drift registers a drift in time: it needs at least 2 stops of each "
+                f"new session to register on; got --register {register}"
+            )
+        pick = order[np.unique(np.round(np.linspace(0, len(order) - 1, register)).astype(int))]
+    else:
+        pick = order[:register]
+    return rows[np.isin(stop[rows], pick)]
+
+
+def _drift_json(reg: Registration, time) -> dict:
+    """{"change", "std"}: the registered drift's change over the session's rows (`time`
+    (M,), first row to last), per frame DOF name, mm / deg."""
+    span = float(time[-1] - time[0])
+    unit = np.array([1.0] * 3 + [np.rad2deg(1.0)] * 3)
+    change, std = reg.drift * span * unit, reg.drift_std() * abs(span) * unit
+    names = [params.POSE[d] for d in reg.dofs]
+    return {
+        "change": {c: float(change[d]) for c, d in zip(names, reg.dofs)},
+        "std": {c: float(std[d]) for c, d in zip(names, reg.dofs)},
+    }
+
+
 def validate_model(
     model: FittedModel,
     data: Measurements,
@@ -207,12 +347,18 @@ def validate_model(
     register: int | None = None,
     compensated: bool | None = None,
     nominal: Table | None = None,
+    frame_drift: bool = False,
 ) -> Validation:
     """Predict `data` with a fitted `model` (see the module docstring). `register`: stops at
     the start of each new session used to register its frame (`stops.stop_index`: a stop
     read several times counts once; None: all of them, a fit);
     `compensated`, `nominal`: only for data without cmd_l columns, the controller's
-    compensation (stated, on a table with a lead) and its nominal table."""
+    compensation (stated, on a table with a lead) and its nominal table.
+    `frame_drift`: a new session's frame drifts linearly in the file's time (a tracker or its
+    stand warming up; `calibrate(..., frame_drift=True)`'s nuisance): its drift is
+    registered with it, on `register` stops spread evenly over the session (its first and
+    last among them; at least 2) instead of its first ones. A stored frame is used as
+    stored."""
     if register is not None and register < 1:
         raise ValueError(f"--register must be a positive number of stops; got {register}")
     require_measured(data)
@@ -263,26 +409,55 @@ def validate_model(
     stop = stop_index(data)
     radius = float(platform_radius(table))
     base_reading = np.asarray(readings(q, np.zeros((n, 6)), target))
+    time = np.asarray(ctx.time, float)
+    counts = np.ones((n, 6)) if stops is None else stops.counts
     for label in data.sessions:
         rows = np.flatnonzero(data.session == label)
         if ins is not None and label in ins.frames:
-            frame = np.asarray(ins.frames[label], float)
-            info[label] = {"source": "stored", "rows_registered": 0}
+            frames[rows] = np.asarray(ins.frames[label], float)
+            info[label] = {"source": "stored", "rows_registered": 0, "drift": None}
         else:
-            first = np.unique(stop[rows])[: register or len(rows)]  # in row order
-            use = rows[np.isin(stop[rows], first)]
+            use = _registration_rows(rows, stop, register, frame_drift)
             use = use[mask[use].any(axis=1)]
             if len(use) == 0:
                 raise ValueError(f"session '{label}': no measured row to register its frame on")
             dofs, _ = nuisance_dofs(mask[use].any(axis=0), np.ptp(data.cmd_pose[use, :3], 0))
             sub = data.subset(use)
             start = initial_frames(sub, dofs, predicted=base_reading[use])[0]
-            frame = register_frame(q[use], measured[use], target, dofs, start, radius)
+            # a new stop's error: the noise, and the fit's parameter error (E[e²] ≈ σ² (1 + h),
+            # h the mean leverage of the fit's readings, as in the noise bound)
+            sigma = None
+            if ins is not None:
+                lev = np.nan_to_num(np.asarray(ins.noise_leverage, float))
+                sigma = ins.stop_noise(counts[use]) * np.sqrt(1.0 + lev)
+            reg = registration(
+                q[use],
+                measured[use],
+                target,
+                dofs,
+                start,
+                radius,
+                time=time[use] if frame_drift else None,
+                sigma=sigma,
+            )
+            frames[rows] = reg.at(time[rows])
             registered[use] = True
-            frame_leverage[rows] = len(list(dofs)) / mask[use].sum()
-            info[label] = {"source": "registered", "rows_registered": int(len(use))}
-        frames[rows] = frame
-        info[label]["pose"] = [float(v) for v in params.pose_to_file(frame)]
+            # the mean leverage of a reading through the registered frame: p / m (p DOFs
+            # over m readings), with a drift p / m · (1 + (t − t̄)² / v) at time t (t̄, v:
+            # the mean and variance of the registration readings' times), whose sum over
+            # the registration's readings is 2 p
+            cells = mask[use].sum(axis=1)
+            lev = np.full(len(rows), len(dofs) / cells.sum())
+            if frame_drift:
+                v = np.average((time[use] - reg.t0) ** 2, weights=cells)
+                lev = lev * (1.0 + (time[rows] - reg.t0) ** 2 / v)
+            frame_leverage[rows] = lev
+            info[label] = {
+                "source": "registered",
+                "rows_registered": int(len(use)),
+                "drift": _drift_json(reg, time[rows]) if frame_drift else None,
+            }
+        info[label]["pose"] = [float(v) for v in params.pose_to_file(frames[rows[0]])]
     reading = np.asarray(readings(q, frames, target))
     residual = np.where(mask, wrap_reading_difference(measured - reading), np.nan)
     measured_rows = mask.any(axis=1)
@@ -302,8 +477,18 @@ def validate_model(
     }
     # a registration row's own residual is smaller by its share: in-sample
     share = np.where(registered, -frame_leverage, frame_leverage)
-    counts = np.ones((n, 6)) if stops is None else stops.counts
     ratio, groups = _noise_ratio(residual[scored], ins, share[scored], counts[scored])
+    trend = {}
+    if not frame_drift:
+        for label in data.sessions:
+            if info[label]["source"] != "registered":
+                continue
+            rows = np.flatnonzero((data.session == label) & predicted)
+            found = time_trend(residual[rows], time[rows])
+            if found is not None and found[0] < TREND_P:
+                p, k, slope = found
+                span = np.ptp(time[data.session == label])
+                trend[label] = (p, params.POSE[k], float(slope * span * unit[k]))
     leg_residual = leg_rms = None
     if mask[scored].all():
         full = mask.all(axis=1)
@@ -331,7 +516,37 @@ def validate_model(
         stops=stops,
         noise_ratio=ratio,
         noise_groups=groups,
+        time_trend=trend,
     )
+
+
+TREND_P = 1e-3  # `Validation.time_trend`: a new session's residuals named as drifting in time
+TREND_MIN_ROWS = 8
+
+
+def time_trend(residual: np.ndarray, time: np.ndarray) -> tuple | None:
+    """(p, column, slope) of the straight line in `time` (M,) through each column of
+    `residual` (M, 6, NaN = not measured) that departs most surely from flat: the slope's
+    t test (M − 2 dof, its scatter from the residuals about the line), Bonferroni over the
+    columns tested (those with `TREND_MIN_ROWS` values or more); None when none is."""
+    best = None
+    tested = 0
+    for k in range(residual.shape[1]):
+        ok = np.isfinite(residual[:, k])
+        if ok.sum() < TREND_MIN_ROWS or np.ptp(time[ok]) <= 0:
+            continue
+        tested += 1
+        t, e = time[ok] - time[ok].mean(), residual[ok, k]
+        slope = (t @ e) / (t @ t)
+        rest = e - e.mean() - slope * t
+        dof = ok.sum() - 2
+        se = np.sqrt((rest @ rest) / dof / (t @ t))
+        p = 2 * t_dist.sf(abs(slope) / se, dof) if se > 0 else 0.0
+        if best is None or p < best[0]:
+            best = (float(p), k, float(slope))
+    if best is None:
+        return None
+    return (min(1.0, best[0] * tested), best[1], best[2])
 
 
 BOUND_Z = 3.09  # one-sided 99.9 % of a normal: `Validation.noise_groups`' bound
@@ -390,10 +605,12 @@ def validate(
     register: int | None = None,
     compensated: bool | None = None,
     nominal: Table | None = None,
+    frame_drift: bool = False,
 ):
     """Predict measured `data` with a fitted model: a `FittedModel`, or the path of a model
     file (`calibrated_table.toml`, as `jaxtable calibrate` / `diagnose --out` write it).
-    Returns a `Validation` (see `validate_model` for `register`, `compensated`, `nominal`).
+    Returns a `Validation` (see `validate_model` for `register`, `compensated`, `nominal`,
+    `frame_drift`).
 
     Deprecated form, kept for one release: `validate(calibration, nominal, data,
     compensated=None)` -> {column: RMS (mm / rad)} in the calibration's frames.
@@ -412,4 +629,11 @@ def validate(
         model = load_fitted_model(model)
     if not isinstance(model, FittedModel):
         raise TypeError(f"validate: model must be a FittedModel or a file path; got {model!r}")
-    return validate_model(model, data, register=register, compensated=compensated, nominal=nominal)
+    return validate_model(
+        model,
+        data,
+        register=register,
+        compensated=compensated,
+        nominal=nominal,
+        frame_drift=frame_drift,
+    )

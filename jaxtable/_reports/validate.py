@@ -111,8 +111,12 @@ def markdown(v: Validation, model_source: str, data_source: str, figures) -> str
             "stored in the model"
             if f["source"] == "stored"
             else f"registered on {f['rows_registered']} row(s)"
+            + (" with a drift, at the session's first row" if f.get("drift") else "")
         )
         lines.append(f"- session {label}: {how}; {pose}")
+    drift = v.drift_lines() + v.trend_lines()
+    if drift:
+        lines += [""] + [f"- {d}" for d in drift]
     lines += [""] + [f"![{Path(p).stem}]({Path(p).name})" for p in figures] + [""]
     return "\n".join(lines)
 
