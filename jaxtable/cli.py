@@ -455,6 +455,10 @@ def _validate(args) -> int:
             + "; ".join(g.words() for g in v.set_aside[:5])
             + ("; ..." if len(v.set_aside) > 5 else "")
         )
+    if args.frame_drift and not v.rows_registered:
+        from ._calibration.validate import NO_NEW_SESSION
+
+        print(f"note: {NO_NEW_SESSION}", file=sys.stderr)
     for line in v.drift_lines() + v.trend_lines():
         print(line)
     if v.noise_ratio:

@@ -210,6 +210,13 @@ def test_validate_registers_a_new_day_s_drifting_tracker(table, tmp_path, capsys
     assert doc["time_trend"]["B"]["p"] == pytest.approx(p, rel=1e-9)
     assert main(argv[:-1] + ["1", "--frame-drift", "--out", str(out)]) == 2
     assert "it needs at least 2 stops of each new session" in capsys.readouterr().err
+    # stored frames are used as stored: --frame-drift on session A's rows says so
+    path_a = tmp_path / "a.csv"
+    jt.save_measurements(dataclasses.replace(day2, session=np.full(len(day2), "A")), path_a)
+    assert main(["validate", str(model_path), str(path_a), "--frame-drift", "--out", str(out)]) == 0
+    assert "no drift was registered" in capsys.readouterr().err
+    with pytest.warns(UserWarning, match="stored frames are used as stored"):
+        jt.validate(model, jt.load_measurements(path_a), frame_drift=True)
 
 
 @pytest.mark.slow

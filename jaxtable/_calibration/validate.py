@@ -288,8 +288,6 @@ def registration(
     return Registration(np.asarray(frame), np.asarray(drift), t0, cov, tuple(dofs))
 
 
-
-
 def _measured_pose(reading, frame, target):
     """Platform pose (6,) whose reading through `frame` and `target` is `reading` (6,)."""
     RF = rotation_matrix(frame[3:])
@@ -458,6 +456,8 @@ def validate_model(
                 "drift": _drift_json(reg, time[rows]) if frame_drift else None,
             }
         info[label]["pose"] = [float(v) for v in params.pose_to_file(frames[rows[0]])]
+    if frame_drift and not registered.any():
+        warnings.warn(NO_NEW_SESSION, stacklevel=2)
     reading = np.asarray(readings(q, frames, target))
     residual = np.where(mask, wrap_reading_difference(measured - reading), np.nan)
     measured_rows = mask.any(axis=1)
@@ -520,6 +520,10 @@ def validate_model(
     )
 
 
+NO_NEW_SESSION = (
+    "--frame-drift: every session's frame is stored in the model, and stored frames are used "
+    "as stored: no drift was registered"
+)
 TREND_P = 1e-3  # `Validation.time_trend`: a new session's residuals named as drifting in time
 TREND_MIN_ROWS = 8
 
