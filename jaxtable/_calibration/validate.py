@@ -93,8 +93,9 @@ class Validation:
       freedom adds p / m to h for the rows predicted through it (its error is in each);
       on the rows it was registered on, and on the fit's own rows, the ratio is below
       √(1 + h) by the share the fit took. Both empty for a model file without the noise.
-    - `time_trend`: {label: (p, column, change)} for a new session whose frame was
-      registered held still and whose predicted residuals drift in time (`time_trend`:
+    - `time_trend`: {label: (p, column, change)} for a session whose frame was held still
+      (stored, or registered without a drift) and whose predicted residuals drift in time
+      (`time_trend`:
       p < `TREND_P` over its columns): the column that drifts most surely and its change
       over the session, first row to last (mm / deg). A tracker drifting since its
       registration shows so (`frame_drift` registers the drift), as does an effect of the
@@ -170,12 +171,18 @@ class Validation:
         lines = []
         for label, (p, column, change) in self.time_trend.items():
             scale, unit = (1e3, "µm") if column in params.XYZ else (3600.0, "″")
+            cause = (
+                "an instrument frame drifting since the fit shows so (this session's frame "
+                "is the model's, used as stored)"
+                if self.frames[label]["source"] == "stored"
+                else "an instrument frame drifting since its registration shows so "
+                "(--frame-drift registers a drift with the frame)"
+            )
             lines.append(
                 f"session {label}: the predicted residuals drift in time ({column} "
                 f"{scale * change:+.3g} {unit} over the session, first row to last; p = "
-                f"{p:.2g} over its columns): an instrument frame drifting since its "
-                "registration shows so (--frame-drift registers a drift with the frame), "
-                "as does an effect of the legs that changes in time"
+                f"{p:.2g} over its columns): {cause}, as does an effect of the legs that "
+                "changes in time"
             )
         return lines
 
@@ -402,8 +409,9 @@ def validate_model(
     frame_leverage = np.zeros(n)
     registered = np.zeros(n, bool)
     info = {}
-    # a session's first `register` stops: a stop read several times is one (its mean, in its
-    # first row); counted in rows, N rows of a stop read k times registered N / k stops
+    # a session's first `register` stops (spread over it with a drift): a stop read several
+    # times is one (its mean, in its first row); counted in rows, N rows of a stop read k
+    # times registered N / k stops
     stop = stop_index(data)
     radius = float(platform_radius(table))
     base_reading = np.asarray(readings(q, np.zeros((n, 6)), target))
@@ -426,8 +434,8 @@ def validate_model(
             # h the mean leverage of the fit's readings, as in the noise bound)
             sigma = None
             if ins is not None:
-                lev = np.nan_to_num(np.asarray(ins.noise_leverage, float))
-                sigma = ins.stop_noise(counts[use]) * np.sqrt(1.0 + lev)
+                h_fit = np.nan_to_num(np.asarray(ins.noise_leverage, float))
+                sigma = ins.stop_noise(counts[use]) * np.sqrt(1.0 + h_fit)
             reg = registration(
                 q[use],
                 measured[use],
@@ -447,8 +455,8 @@ def validate_model(
             cells = mask[use].sum(axis=1)
             lev = np.full(len(rows), len(dofs) / cells.sum())
             if frame_drift:
-                v = np.average((time[use] - reg.t0) ** 2, weights=cells)
-                lev = lev * (1.0 + (time[rows] - reg.t0) ** 2 / v)
+                var_t = np.average((time[use] - reg.t0) ** 2, weights=cells)
+                lev = lev * (1.0 + (time[rows] - reg.t0) ** 2 / var_t)
             frame_leverage[rows] = lev
             info[label] = {
                 "source": "registered",
@@ -479,10 +487,8 @@ def validate_model(
     share = np.where(registered, -frame_leverage, frame_leverage)
     ratio, groups = _noise_ratio(residual[scored], ins, share[scored], counts[scored])
     trend = {}
-    if not frame_drift:
-        for label in data.sessions:
-            if info[label]["source"] != "registered":
-                continue
+    for label in data.sessions:
+        if info[label]["drift"] is None:  # a frame held still: stored, or registered so
             rows = np.flatnonzero((data.session == label) & predicted)
             found = time_trend(residual[rows], time[rows])
             if found is not None and found[0] < TREND_P:
