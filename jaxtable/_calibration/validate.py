@@ -336,8 +336,8 @@ def _drift_json(reg: Registration, time) -> dict:
     """{"change", "std"}: the registered drift's change over the session's rows (`time`
     (M,), first row to last), per frame DOF name, mm / deg."""
     span = float(time[-1] - time[0])
-    unit = np.array([1.0] * 3 + [np.rad2deg(1.0)] * 3)
-    change, std = reg.drift * span * unit, reg.drift_std() * abs(span) * unit
+    change = params.pose_to_file(reg.drift * span)
+    std = params.pose_to_file(reg.drift_std() * abs(span))
     names = [params.POSE[d] for d in reg.dofs]
     return {
         "change": {c: float(change[d]) for c, d in zip(names, reg.dofs)},
