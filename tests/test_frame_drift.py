@@ -182,6 +182,13 @@ def test_validate_registers_a_new_day_s_drifting_tracker(table, tmp_path, capsys
     for g, (r, e, b) in v.noise_groups.items():
         assert r < b, (g, r, e, b)
     assert v.time_trend == {}
+    # within the noise through a registered frame: said with what registration hides; not
+    # through the stored frame
+    assert "takes up much of a change of the legs since the fit" in v.noise_words()
+    stored = jt.validate(model, _day2(table, true, 0, drift=np.zeros(6), frame=FRAME_A,
+                                      label="A"))  # fmt: skip
+    assert "within the noise the model's fit found" in stored.noise_words()
+    assert "takes up much" not in stored.noise_words()
     # the registration: 10 stops spread over the day, its first and last among them
     rows = np.flatnonzero(v.registered)
     assert len(rows) == 10 and rows[0] == 0 and rows[-1] == len(day2) - 1, rows
