@@ -310,6 +310,14 @@ def pose_to_file(pose) -> np.ndarray:
     return out
 
 
+def change_words(dof: int, value: float, std: float = float("nan")) -> str:
+    """A change of pose DOF `dof` (0-5) and its σ in words, `value` and `std` in mm / rad:
+    "x +28 ± 4.8 µm", "yaw +5.98 ± 1.9″" (no ± where `std` is NaN)."""
+    scale, unit = (1e3, " µm") if dof < 3 else (np.rad2deg(1.0) * 3600.0, "″")
+    sd = f" ± {scale * std:.2g}" if np.isfinite(std) else ""
+    return f"{POSE[dof]} {scale * value:+.3g}{sd}{unit}"
+
+
 def pose_from_file(pose) -> np.ndarray:
     """Poses (..., 6) in mm / deg -> mm / rad."""
     out = np.array(pose, dtype=float)

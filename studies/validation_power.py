@@ -58,24 +58,27 @@ def one_table(seed: int) -> tuple[np.ndarray, np.ndarray]:
         zeros = np.asarray(true.zero_lengths).copy()
         zeros[LEG - 1] += d * 1e-3
         moved = jt.replace(true, zero_lengths=zeros)
-        day2 = jt.simulate(nominal, moved, jt.plan_random(60, 4000 + seed), jt.tracker6(),
-                           frame=FRAME, target=TARGET, session="A", seed=5000 + seed)  # fmt: skip
-        new = [
+        # day 2: the tracker as the fit left it; set up anew, still; set up anew, drifting
+        stored, still, drifting = (
             jt.simulate(
                 nominal,
                 moved,
                 jt.plan_random(60, 4000 + seed),
                 jt.tracker6(),
-                frame=FRAME_B,
+                frame=frame,
                 target=TARGET,
-                session="B",
+                session=label,
                 seed=5000 + seed,
                 frame_drift=drift,
             )  # fmt: skip
-            for drift in (np.zeros(6), DRIFT)
-        ]
-        for data, kw in ((day2, {}), (new[0], {"register": 10}), (new[1], {"register": 10}),
-                         (new[1], {"register": 10, "frame_drift": True})):  # fmt: skip
+            for frame, label, drift in (
+                (FRAME, "A", np.zeros(6)),
+                (FRAME_B, "B", np.zeros(6)),
+                (FRAME_B, "B", DRIFT),
+            )  # fmt: skip
+        )
+        for data, kw in ((stored, {}), (still, {"register": 10}), (drifting, {"register": 10}),
+                         (drifting, {"register": 10, "frame_drift": True})):  # fmt: skip
             groups = jt.validate(model, data, **kw).noise_groups
             verdicts.append(any(r > b for r, _, b in groups.values()))
             r, e, _ = groups["positions"]

@@ -37,7 +37,6 @@ from .._forward import RESULTS, ForwardOptions, forward_one
 from .._jit import jit
 from .._kinematics import in_stroke
 from .._rotation import (
-    ARCSEC_PER_RAD,
     best_rotation,
     euler_from_matrix,
     wrap_reading_difference,
@@ -943,10 +942,7 @@ class Calibration:
         lines = []
         for s in sorted({c[0] for c in changes.values()}):  # sessions, not data
             span = 1.0 if self.session_span is None else float(self.session_span[s])
-            parts = []
-            for _, d, v, sd in (c for c in changes.values() if c[0] == s):
-                f, unit = (1e3, " µm") if d < 3 else (ARCSEC_PER_RAD, "″")
-                parts.append(f"{params.POSE[d]} {f * v:+.3g} ± {f * sd:.2g}{unit}")
+            parts = [params.change_words(d, v, sd) for t, d, v, sd in changes.values() if t == s]
             if parts and span > 0:
                 lines.append(
                     f"instrument frame drift over session {s + 1}, first row to last (a "

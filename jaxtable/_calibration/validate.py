@@ -152,15 +152,15 @@ class Validation:
         for label, f in self.frames.items():
             if not f.get("drift"):
                 continue
-            parts = []
-            for c, v in f["drift"]["change"].items():
-                scale, unit = (1e3, " µm") if c in params.XYZ else (3600.0, "″")
-                sd = f["drift"]["std"][c]
-                parts.append(
-                    f"{c} {scale * v:+.3g}"
-                    + (f" ± {scale * sd:.2g}" if np.isfinite(sd) else "")
-                    + unit
-                )
+            change, std = (
+                params.pose_from_file([f["drift"][k].get(c, 0.0) for c in params.POSE])
+                for k in ("change", "std")
+            )
+            parts = [
+                params.change_words(d, change[d], std[d])
+                for d, c in enumerate(params.POSE)
+                if c in f["drift"]["change"]
+            ]
             lines.append(
                 f"session {label}: the instrument frame drifted over the session, first row "
                 f"to last (registered with the frame on {f['rows_registered']} row(s) "
