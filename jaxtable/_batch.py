@@ -263,14 +263,14 @@ def batch_mesh():
 
 def _pad_rows(tree, n_to: int):
     """Pad every leaf (numpy) along axis 0 to n_to rows by repeating its last row."""
-
-    def pad(x):
-        n = x.shape[0]
-        if n == n_to:
-            return x
-        return np.concatenate([x, np.repeat(x[-1:], n_to - n, axis=0)])
-
-    return jax.tree.map(pad, tree)
+    return jax.tree.map(
+        lambda x: (
+            x
+            if x.shape[0] == n_to
+            else np.concatenate([x, np.repeat(x[-1:], n_to - x.shape[0], axis=0)])
+        ),
+        tree,
+    )
 
 
 def _slice_rows(tree, start: int, stop: int):

@@ -292,6 +292,15 @@ def stop_moves(data, stop) -> np.ndarray:
     return out
 
 
+def _rss(A, d):
+    """(residual sum of squares, rank, coefficients) of the least squares of d on A."""
+    if A.shape[1] == 0:
+        return float(d @ d), 0, np.zeros(0)
+    beta, _, rank, _ = np.linalg.lstsq(A, d, rcond=None)
+    e = d - A @ beta
+    return float(e @ e), int(rank), beta
+
+
 def _pair_parts(d, moves):
     """One column's pair test: d (n,) first − second reading of each stop read twice,
     `moves` (n, 6) the move into each. Least squares of d on [1, moves]; each part against
@@ -300,21 +309,13 @@ def _pair_parts(d, moves):
     from scipy.stats import f as f_dist
 
     X = np.column_stack([np.ones(len(d)), moves])
-
-    def rss(A):
-        if A.shape[1] == 0:
-            return float(d @ d), 0, np.zeros(0)
-        beta, _, rank, _ = np.linalg.lstsq(A, d, rcond=None)
-        e = d - A @ beta
-        return float(e @ e), int(rank), beta
-
-    full, rank, beta = rss(X)
+    full, rank, beta = _rss(X, d)
     rest = len(d) - rank
     if rest < PAIR_MIN_DOF or full <= 0:
         return None
     parts = []
     for reduced in (X[:, :1], X[:, 1:]):  # without the move terms, without the intercept
-        ss, r, _ = rss(reduced)
+        ss, r, _ = _rss(reduced, d)
         dof = rank - r
         F = ((ss - full) / dof) / (full / rest) if dof > 0 else float("nan")
         parts.append((float(F), dof, float(f_dist.sf(F, dof, rest)) if dof > 0 else 1.0, rest))
