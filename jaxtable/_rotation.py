@@ -56,21 +56,21 @@ def euler_matrices(angles: np.ndarray, order: str = "zyx", signs=(1, 1, 1)) -> n
     angle measured in the other sense). numpy in, numpy out: for reading other
     instruments' files, never for kinematics."""
     a = np.asarray(angles, float) * np.asarray(signs, float)
-    c, s = np.cos(a), np.sin(a)
-    one, zero = np.ones(len(a)), np.zeros(len(a))
-
-    def axis(k):  # the rotation about axis k (x, y, z) by angle k, (N, 3, 3)
-        i, j = [(1, 2), (2, 0), (0, 1)][k]
-        m = np.zeros((len(a), 3, 3))
-        m[:, k, k] = one
-        m[:, i, i] = m[:, j, j] = c[:, k]
-        m[:, i, j], m[:, j, i] = -s[:, k], s[:, k]
-        return m + zero[:, None, None]
-
     out = np.broadcast_to(np.eye(3), (len(a), 3, 3))
     for letter in order:  # three factors, not a loop over attitudes
-        out = out @ axis("xyz".index(letter))
+        out = out @ _axis_rotations(a, "xyz".index(letter))
     return out
+
+
+def _axis_rotations(a: np.ndarray, k: int) -> np.ndarray:
+    """(N, 3, 3) the rotations about axis k (0, 1, 2: x, y, z) by the angles a[:, k]."""
+    i, j = [(1, 2), (2, 0), (0, 1)][k]
+    c, s = np.cos(a[:, k]), np.sin(a[:, k])
+    m = np.zeros((len(a), 3, 3))
+    m[:, k, k] = 1.0
+    m[:, i, i] = m[:, j, j] = c
+    m[:, i, j], m[:, j, i] = -s, s
+    return m
 
 
 def best_rotation(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
