@@ -51,6 +51,7 @@ from .measurements import (
     check_angle_convention,
     check_commanded,
     check_units,
+    nominal_lengths,
     require_measured,
 )
 from .noise import (
@@ -1423,7 +1424,8 @@ def setup(
     require_measured(data)
     check_units(data)
     check_angle_convention(data)
-    check_alignment(data, nominal)
+    ik = nominal_lengths(nominal, data)
+    check_alignment(data, nominal, ik)
     mask = np.isfinite(data.measured)
     col_mask = mask.any(0)
     motion = np.ptp(data.cmd_pose[:, :3], axis=0)
@@ -1454,7 +1456,7 @@ def setup(
     problem = make_problem(
         nominal, data, eff, bases, compensated, used_columns(eff, free), noise.sigma0
     )
-    check_commanded(data, nominal)  # after the stroke check of `make_problem`: more specific
+    check_commanded(data, nominal, ik)  # after the stroke check of `make_problem`: more specific
     theta0 = zero_steps(nominal, eff, free, bases)
     if frame_dofs:
         theta0["frame"] = jnp.asarray(initial_frames(data, frame_dofs)[:, list(frame_dofs)])

@@ -536,7 +536,7 @@ def check_angle_convention(data: Measurements) -> None:
 SHIFTS = (1, -1, 2, -2, 3, -3)  # row shifts `check_alignment` tries
 
 
-def check_alignment(data: Measurements, nominal=None) -> None:
+def check_alignment(data: Measurements, nominal=None, lengths=None) -> None:
     """Refuse data whose measured rows do not belong to their commanded rows: a log that
     writes each reading one stop late or early, or a row lost from one of two logs that
     were joined line by line (every row after it shifted). The moves between consecutive
@@ -578,7 +578,8 @@ def check_alignment(data: Measurements, nominal=None) -> None:
         names = ("measured", "the commanded ones", "commanded")
         pairs.append((words, names, least, tol, d_meas, (d_cmd,), ok))
     if nominal is not None and data.cmd_lengths is not None:
-        steps = [np.diff(ik, axis=0) for ik in _nominal_lengths(nominal, data.cmd_pose)]
+        ik = nominal_lengths(nominal, data) if lengths is None else lengths
+        steps = [np.diff(x, axis=0) for x in ik]
         dl = np.diff(np.asarray(data.cmd_lengths, float), axis=0)
         words = "commanded lengths (cmd_l) change"
         names = ("cmd_l", "the inverse kinematics of the commanded poses", "commanded pose")
@@ -626,14 +627,18 @@ def check_alignment(data: Measurements, nominal=None) -> None:
             )
 
 
-def _nominal_lengths(nominal, cmd_pose) -> list[np.ndarray]:
-    """The table's inverse kinematics of the commanded poses (N, 6) mm, by a controller that
-    compensates the spiral term and by one that does not (`check_alignment`,
-    `check_commanded`: the file's cmd_l may come from either)."""
+def nominal_lengths(nominal, data: Measurements) -> list[np.ndarray] | None:
+    """The `nominal` table's inverse kinematics of the commanded poses (N, 6) mm, by a
+    controller that compensates the spiral term and by one that does not (the file's cmd_l
+    may come from either), or None without a table or cmd_l columns: what
+    `check_alignment` and `check_commanded` compare the cmd_l columns with (a caller that
+    runs both passes them as `lengths`, computed once)."""
+    if nominal is None or data.cmd_lengths is None:
+        return None
     from .._api import actuator_command
 
     return [
-        np.asarray(actuator_command(nominal, cmd_pose, compensated, check=False))
+        np.asarray(actuator_command(nominal, data.cmd_pose, compensated, check=False))
         for compensated in (True, False)
     ]
 
@@ -645,7 +650,7 @@ this (mm, in some leg, beyond that leg's offset common to the file) is refused b
 workspace, the spiral term by tenths."""
 
 
-def check_commanded(data: Measurements, nominal) -> None:
+def check_commanded(data: Measurements, nominal, lengths=None) -> None:
     """Refuse rows whose commanded pose is not where their commanded lengths (cmd_l columns)
     put the `nominal` table: a typo or a logging glitch in one of them. The fit uses the
     lengths; the pose labels the row and starts the forward solve, which from far enough
@@ -661,7 +666,7 @@ def check_commanded(data: Measurements, nominal) -> None:
         return
     cmd_l = np.asarray(data.cmd_lengths, float)
     off = np.full(cmd_l.shape, np.inf)
-    for ik in _nominal_lengths(nominal, data.cmd_pose):
+    for ik in nominal_lengths(nominal, data) if lengths is None else lengths:
         d = cmd_l - ik
         d = d - np.nanmedian(d, axis=0)
         closer = np.nan_to_num(np.abs(d), nan=np.inf).max(1) < np.abs(off).max(1)

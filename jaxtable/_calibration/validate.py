@@ -49,6 +49,7 @@ from .measurements import (
     check_angle_convention,
     check_commanded,
     check_units,
+    nominal_lengths,
     require_measured,
 )
 from .model_file import FittedModel, load_fitted_model
@@ -378,8 +379,9 @@ def validate_model(
     data, stops = merge_stops(data)  # a stop read several times: predicted at its mean
     aside = aside + ([] if stops is None else stops.set_aside)
     table = model.table
-    check_alignment(data, table)
-    check_commanded(data, table)
+    ik = nominal_lengths(table, data)
+    check_alignment(data, table, ik)
+    check_commanded(data, table, ik)
     effects = resolve_effects(table, model.effects)
     if data.cmd_lengths is None and nominal is None:
         raise ValueError(
