@@ -558,6 +558,8 @@ def check_alignment(data: Measurements, nominal=None, lengths=None) -> None:
     between two attitudes, equal steps along a line) agree at every shift and are never
     refused.
 
+    `lengths`: `nominal_lengths(nominal, data)` where the caller has them.
+
     Raises DataFileError naming the session, the row and the shift."""
     session = np.asarray(data.session)
     n = len(session) - 1
@@ -659,6 +661,8 @@ def check_commanded(data: Measurements, nominal, lengths=None) -> None:
     leg's median over the file (a controller whose zero lengths differ from the table's
     shifts a leg by the same amount at every row); a row is refused when some leg is off by
     more than `GROSS_MM`.
+
+    `lengths`: `nominal_lengths(nominal, data)` where the caller has them.
 
     Raises DataFileError naming the rows (numbered from 1, the first data row), the leg and
     how far it is off; no-op without cmd_l columns."""
