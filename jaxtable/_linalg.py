@@ -174,73 +174,138 @@ def tridiagonal_small(S: Float[ArrayLike, "n n"]):
 
 
 BISECTIONS = 40
-"""Steps of `largest_eigval_psd`'s bisection: the bracket starts at most 2 λ wide, so the
-midpoint is within λ / 2⁴⁰ ≈ 1e-12 λ."""
+"""Steps of `extreme_eigvals_psd`'s bisection: each bracket starts at most the normalised
+matrix's largest eigenvalue wide (trace 1), so the midpoint is within 2⁻⁴¹ of it."""
 
 
-def largest_eigval_psd(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, ""]:
-    """Largest eigenvalue λ of a symmetric positive semi-definite matrix to ~1e-12 relative
-    (rounding in the reduction aside), whatever the gap to the next one: Householder
-    tridiagonalisation (`tridiagonal_small`) of S / tr S, then bisection on λ with the
-    leading minors of x I − T (x > λ exactly when all are positive; three-term recurrence,
-    no divisions). The bracket is [max aᵢ, max(aᵢ + |bᵢ₋₁| + |bᵢ|)] (a diagonal entry is at
-    most λ; Gershgorin), at most 2 λ wide since |bᵢ| ≤ √(aᵢ aᵢ₊₁) for S ⪰ 0.
+def _minors(x, a, b2, s):
+    """Leading minors of s (x I − T) for the tridiagonal T = (a, b), b2 = b²: the last one
+    (the characteristic polynomial's value up to sign), its derivative in x, and whether
+    all are positive (s = +1: x above every eigenvalue; s = −1: below every one). Three-term
+    recurrence, no divisions."""
+    prev, minor = 1.0, s * (x - a[0])
+    dprev, dminor = 0.0, s
+    positive = minor > 0
+    for i in range(1, a.shape[0]):
+        t = s * (x - a[i])
+        prev, minor, dprev, dminor = (
+            minor,
+            t * minor - b2[i - 1] * prev,
+            dminor,
+            s * minor + t * dminor - b2[i - 1] * dprev,
+        )
+        positive = positive & (minor > 0)
+    return minor, dminor, positive
+
+
+def extreme_eigvals_psd(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "2"]:
+    """(λ_max, λ_min) of a symmetric positive semi-definite matrix, whatever the gaps to
+    their neighbours: Householder tridiagonalisation (`tridiagonal_small`) of S / tr S, then
+    bisection on both ends at once with the leading minors of x I − T (x > λ_max exactly when
+    all are positive; x < λ_min when all those of T − x I are), and one Newton step on the
+    characteristic polynomial from each bracket's midpoint, kept inside the bracket.
+
+    Precision: λ_max to ~1e-12 of itself whatever the gap; λ_min to ~1e-15 tr S where it is
+    a simple eigenvalue (rounding in the reduction: relative to λ_min, that grows with
+    λ_max / λ_min), to 2⁻⁴² tr S where the two smallest tie. The Newton step is what takes a
+    simple λ_min there from the bisection's 2⁻⁴¹ min aᵢ, and never leaves the bracket.
+    Brackets: [max aᵢ, max(aᵢ + |bᵢ₋₁| + |bᵢ|)] for λ_max (Gershgorin; a diagonal entry is
+    at most λ_max), [max(0, min(aᵢ − |bᵢ₋₁| − |bᵢ|)), min aᵢ] for λ_min.
 
     Not differentiable (the bisection has no derivative): for maps of fixed matrices, e.g.
-    the error map's condition number. The bisection is a `fori_loop` (the six-minor
-    recurrence unrolled inside): written out as 40 unrolled steps, the error map's kernel
-    compiled ~1.2 s slower on a small grid and ran ~20 % slower on large ones, the same
-    numbers. The loop carries the bracket's lower end and width, so each step has one
-    output that reads the recurrence: carrying both ends, XLA computed the recurrence once
-    for each (the error map with its condition number, 2²⁰ poses, two pairs of runs:
-    7.2–7.4 → 8.4–8.6×10⁵ poses/s). `largest_eigval_small` is the differentiable one
-    (design criteria), by repeated squaring: slower, and only as exact as the gap allows
-    (the error map's condition number that way was up to 5e-6 off numpy's at 10,000 workspace
-    poses, where two singular values of a symmetric table nearly tie; this way 2e-13)."""
+    the error map's condition number. The bisection is a `fori_loop` (the recurrence unrolled
+    inside): 40 unrolled steps compiled ~1.2 s slower and ran ~20 % slower. The loop carries
+    each bracket's lower end and width, so that a step has one output that reads the
+    recurrence (carrying both ends, XLA computed the recurrence once for each).
+    `largest_eigval_small` is the differentiable one (design criteria), by repeated squaring:
+    slower, and only as exact as the gap allows."""
     S = jax.lax.stop_gradient(jnp.asarray(S))
     scale = jnp.trace(S)
     a, b = tridiagonal_small(S / jnp.where(scale > 0, scale, 1.0))
     b2, ab, zero = b * b, jnp.abs(b), jnp.zeros(1, S.dtype)
-    lo = jnp.max(a)
-    hi = jnp.max(a + jnp.concatenate([ab, zero]) + jnp.concatenate([zero, ab]))
+    r = jnp.concatenate([ab, zero]) + jnp.concatenate([zero, ab])
+    s = jnp.array([1.0, -1.0], S.dtype)  # λ_max's bracket, λ_min's
+    lo = jnp.stack([jnp.max(a), jnp.maximum(jnp.min(a - r), 0.0)])
+    hi = jnp.stack([jnp.max(a + r), jnp.min(a)])
 
-    def bisect(_, carry):  # the bracket is [lo, lo + w]
+    def bisect(_, carry):  # the brackets are [lo, lo + w]
         lo, w = carry
         w = 0.5 * w
         x = lo + w
-        prev, minor = 1.0, x - a[0]
-        above = minor > 0
-        for i in range(1, a.shape[0]):
-            prev, minor = minor, (x - a[i]) * minor - b2[i - 1] * prev
-            above = above & (minor > 0)
-        return jnp.where(above, lo, x), w
+        root_above = _minors(x, a, b2, s)[2] ^ (s > 0)
+        return jnp.where(root_above, x, lo), w
 
     lo, w = jax.lax.fori_loop(0, BISECTIONS, bisect, (lo, hi - lo))
-    return scale * (lo + 0.5 * w)
+    x = lo + 0.5 * w
+    p, dp, _ = _minors(x, a, b2, s)
+    step = p / jnp.where(dp != 0, dp, 1.0)
+    x = jnp.where(dp != 0, jnp.clip(x - step, lo, lo + w), x)
+    return scale * x
 
 
-def cond_small(J: Float[ArrayLike, "n n"], J_inv=None) -> Float[ArrayLike, ""]:
-    """2-norm condition number σ_max / σ_min of a square matrix (n ≥ 2), from the largest
-    eigenvalues of JᵀJ and of its inverse J⁻¹J⁻ᵀ (`largest_eigval_psd`, ~1e-11 relative
-    against numpy's SVD): `J_inv` when the caller has J⁻¹, else by elimination. Not
-    differentiable."""
+SINGULAR = 1e-11
+"""λ_min / λ_max of JᵀJ below which `cond_small` reports J singular (inf): a condition number
+above ~3×10⁵, where rounding in JᵀJ leaves it ~5e-4 uncertain, and soon nothing of it."""
+
+
+def cond_small(J: Float[ArrayLike, "n n"]) -> Float[ArrayLike, ""]:
+    """2-norm condition number σ_max / σ_min of a square matrix (n ≥ 2): the square root of
+    λ_max / λ_min of JᵀJ (`extreme_eigvals_psd`); inf where that ratio is below `SINGULAR`
+    (a condition number above ~3×10⁵). Relative precision ~5e-15 cond² at worst (forming JᵀJ
+    squares the condition; λ_min is good to ~1e-15 of its trace): 3e-14 at the error map's
+    cond ≈ 2–3, 5e-9 at 10³, 5e-5 at 10⁵. Not differentiable."""
+    lam = extreme_eigvals_psd(gram_small(J))
+    ratio = lam[1] / jnp.where(lam[0] > 0, lam[0], 1.0)
+    return jnp.where(ratio > SINGULAR, jnp.sqrt(1.0 / jnp.where(ratio > 0, ratio, 1.0)), jnp.inf)
+
+
+def gram_small(J: Float[ArrayLike, "m n"]) -> Float[ArrayLike, "n n"]:
+    """JᵀJ, each entry on and below the diagonal computed once and mirrored (element-wise
+    code, as `matmul_small`: under `vmap` a `@` is one tiny product per row)."""
     J = jnp.asarray(J)
-    J_inv = inv_small(J) if J_inv is None else jnp.asarray(J_inv)
-    pair = jnp.stack([matmul_small(J.T, J), matmul_small(J_inv, J_inv.T)])
-    return jnp.sqrt(jnp.prod(jax.vmap(largest_eigval_psd)(pair)))
+    n = J.shape[1]
+    low = [
+        [sum(J[k, i] * J[k, j] for k in range(J.shape[0])) for j in range(i + 1)] for i in range(n)
+    ]
+    return jnp.stack([jnp.stack([low[max(i, j)][min(i, j)] for j in range(n)]) for i in range(n)])
 
 
 def cholesky_small(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "n n"]:
-    """Lower-triangular L with L Lᵀ = S for a symmetric positive definite S, unrolled over
-    the n columns (element-wise code, no LAPACK call)."""
+    """Lower-triangular L with L Lᵀ = S for a symmetric positive definite S (NaN where S is
+    not), unrolled over the entries (element-wise code, no LAPACK call). Reads S's lower
+    triangle."""
     n = S.shape[0]
-    rows = jnp.arange(n)
-    L = jnp.zeros_like(S)
-    for k in range(n):
-        d = jnp.sqrt(S[k, k] - L[k] @ L[k])
-        col = (S[:, k] - L @ L[k]) / d
-        L = L.at[:, k].set(jnp.where(rows > k, col, jnp.where(rows == k, d, 0.0)))
-    return L
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = jnp.sqrt(S[j, j] - sum(L[j][k] ** 2 for k in range(j)))
+        L[j][j] = d
+        for i in range(j + 1, n):
+            L[i][j] = (S[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / d
+    zero = jnp.zeros_like(S[0, 0])
+    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
+
+
+def inv_normal_small(A: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "n n"]:
+    """A⁻¹ = (AᵀA)⁻¹Aᵀ by the Cholesky factor L of AᵀA: A⁻¹ = L⁻ᵀ (L⁻¹ Aᵀ), all on scalar
+    entries (element-wise code, no pivoting). Forming AᵀA squares the condition, so the
+    relative precision is ~1e-16 cond(A)²: for well-conditioned matrices (scale the columns
+    first; the error map's Jacobian with its angles scaled by the platform radius has
+    cond ≈ 2–3). NaN where AᵀA is not numerically positive definite. About a quarter of
+    `inv_small`'s operations (6×6: 0.9k against 3.4k counted), whose one-hot pivoting is the
+    price of taking any non-singular matrix."""
+    A = jnp.asarray(A)
+    n = A.shape[0]
+    L = cholesky_small(gram_small(A))
+    r = [1.0 / L[i, i] for i in range(n)]
+    Y = [[None] * n for _ in range(n)]  # Y = L⁻¹ Aᵀ, row by row
+    for i in range(n):
+        for c in range(n):
+            Y[i][c] = (A[c, i] - sum(L[i, k] * Y[k][c] for k in range(i))) * r[i]
+    X = [[None] * n for _ in range(n)]  # X = L⁻ᵀ Y
+    for i in reversed(range(n)):
+        for c in range(n):
+            X[i][c] = (Y[i][c] - sum(L[k, i] * X[k][c] for k in range(i + 1, n))) * r[i]
+    return jnp.stack([jnp.stack(row) for row in X])
 
 
 def smallest_generalized_eigval(

@@ -120,21 +120,6 @@ def euler_rate_matrix(angles: Float[ArrayLike, "3"]) -> Float[ArrayLike, "3 3"]:
     )
 
 
-def euler_rate_inverse(angles: Float[ArrayLike, "3"]) -> Float[ArrayLike, "3 3"]:
-    """E⁻¹ of `euler_rate_matrix` in closed form (det E = cos θ: singular at pitch ±90°):
-    the small rotation vector to Euler-angle increments."""
-    theta, psi = angles[1], angles[2]
-    ct, tt = jnp.cos(theta), jnp.tan(theta)
-    cp, sp = jnp.cos(psi), jnp.sin(psi)
-    return jnp.array(
-        [
-            [cp / ct, sp / ct, 0.0],
-            [-sp, cp, 0.0],
-            [cp * tt, sp * tt, 1.0],
-        ]
-    )
-
-
 def euler_from_matrix(R: Float[ArrayLike, "3 3 ..."]) -> Float[ArrayLike, "3 ..."]:
     """(roll, pitch, yaw) of R = Rz(yaw) Ry(pitch) Rx(roll), rad, shape (3,); the inverse of
     `rotation_matrix` for pitch in (−π/2, π/2). Trailing axes batch (R (3, 3, N) -> (3,

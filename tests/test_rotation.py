@@ -102,16 +102,6 @@ def test_pose_error_hand_computed():
     np.testing.assert_allclose(many[2, 1], err, atol=1e-15)
 
 
-def test_euler_rate_inverse_is_the_inverse():
-    from jaxtable._rotation import euler_rate_inverse
-
-    for angles in ([0.2, -0.4, 0.7], [-1.0, 1.2, -2.5], [0.0, 0.0, 0.0]):
-        E = np.asarray(jt.euler_rate_matrix(np.array(angles)))
-        np.testing.assert_allclose(
-            np.asarray(euler_rate_inverse(np.array(angles))), np.linalg.inv(E), atol=1e-14
-        )
-
-
 def test_wrapped_reading_difference_in_numpy_equals_the_jax_form():
     """Angle columns wrapped into [−π, π), positions untouched; a host array in gives a
     host array out with the same numbers as the jax form."""

@@ -24,8 +24,8 @@ from .._batch import stream_batch
 from .._errors import require_x64
 from .._forward import platform_radius
 from .._kinematics import within_limits
-from .._linalg import cond_small, inv_small, matmul_small
-from .._rotation import ARCSEC_PER_RAD, euler_rate_inverse, euler_rate_matrix
+from .._linalg import cond_small, inv_normal_small, matmul_small
+from .._rotation import ARCSEC_PER_RAD, euler_rate_matrix
 from .._table import Table
 from .sensitivities import BUDGET_WRT, budget_jacobians_one
 from .tolerances import PARAMETER, SOURCES, Tolerances
@@ -43,20 +43,17 @@ def budget_one(table: Table, sigmas: tuple, pose, with_cond: bool = True):
     _, K, gains, spiral = budget_jacobians_one(table, pose)
     # δ(t, ω) = −K⁻¹ D δθ with D block-diagonal by leg: column (i, c) of the pose error is
     # −K⁻¹[:, i] · d_ic, so σ² = σ_src² Σ_i (K⁻¹[:, i])² Σ_c d_ic² (= gains[i, param]).
-    Kinv = inv_small(K)  # plain jnp: see _linalg on LAPACK deadlocks
+    # K⁻¹ = D (K D)⁻¹ with D = diag(1, 1, 1, 1/ρ, 1/ρ, 1/ρ): K D is well conditioned
+    rho = platform_radius(table)
+    d = jnp.array([1.0, 1.0, 1.0, 1.0 / rho, 1.0 / rho, 1.0 / rho])
+    Kinv = d[:, None] * inv_normal_small(K * d)
     column = [BUDGET_WRT.index(PARAMETER[src]) for src in SOURCES]
     std = jnp.asarray(sigmas)[:, None] * jnp.sqrt(matmul_small(Kinv**2, gains[:, column])).T
     std = jnp.concatenate([std, jnp.sqrt(jnp.sum(std**2, axis=0))[None]])
     bias = matmul_small(Kinv, spiral)  # not compensating = an L0 error of Δl2
     if with_cond:  # of the Euler-angle Jacobian K diag(I, E), angles scaled by the radius ρ
-        rho = platform_radius(table)
-        J = jnp.concatenate(
-            [K[:, :3], matmul_small(K[:, 3:], euler_rate_matrix(pose[3:])) / rho], axis=1
-        )
-        J_inv = jnp.concatenate(
-            [Kinv[:3], rho * matmul_small(euler_rate_inverse(pose[3:]), Kinv[3:])]
-        )
-        cond = cond_small(J, J_inv)
+        E = euler_rate_matrix(pose[3:])
+        cond = cond_small(jnp.concatenate([K[:, :3], matmul_small(K[:, 3:], E) / rho], axis=1))
     else:
         cond = jnp.asarray(jnp.nan)
     reach = within_limits(table, pose, once=True)  # shares the budget's sines
