@@ -84,7 +84,9 @@ def test_bench_cli_quick_writes_every_figure(tmp_path):
         "calibration",
         "latency",
         "map",
+        "error_map_big",
     } <= set(r)
+    assert r["error_map_big"]["poses"] == 10**4 and r["error_map_big"]["cond_max"] > 1
     assert all("numpy_per_s" in x for x in r["ik"])
     assert all(x["converged"] == 1.0 for x in r["fk"])
     assert {"mean_steps", "limit_per_s", "fraction"} <= set(r["fk_limit"])
