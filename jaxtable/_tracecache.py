@@ -134,9 +134,16 @@ def _slots(leaves) -> list:
 
 def _avals(xs) -> tuple:
     """(shape, dtype, weak type) of each array. One call for all of a call's arrays: the
-    repeat path (`_repeat`) compares them on every call, ~70 arrays for a fit's block."""
+    repeat path (`_repeat`) compares them on every call, ~70 arrays for a fit's block. A
+    leaf that is not an array (a Python number where an earlier call had an array) gets its
+    type's name, which no array's dtype equals."""
     return tuple(
-        (np.shape(x), np.dtype(x.dtype).str, bool(getattr(x, "weak_type", False))) for x in xs
+        (
+            np.shape(x),
+            np.dtype(x.dtype).str if hasattr(x, "dtype") else type(x).__name__,
+            bool(getattr(x, "weak_type", False)),
+        )
+        for x in xs
     )
 
 

@@ -239,11 +239,14 @@ def main(argv=None):
         for k in others
     }
     worst_other = max(rel, key=rel.get)
+    # the table's symmetry makes several assignments equal: say so rather than name one
+    n_tied = int(np.sum(hands.candidates <= hands.candidates.min() * (1 + 1e-6)))
+    tied = f" (one of {n_tied} that tie to 1 ppm)" if n_tied > 1 else ""
     lines += [
         "",
         "## Hand per leg",
         "",
-        f"All 64 assignments enumerated: legs 1-6 = {hand_text} gives the smallest "
+        f"All 64 assignments enumerated: legs 1-6 = {hand_text}{tied} gives the smallest "
         f"uncompensated spiral error, {1e3 * hands.value:.0f} µm against "
         f"{1e3 * hands.start_value:.0f} µm with six right-hand screws "
         f"({100 * (1 - hands.value / hands.start_value):.0f} % less; the 64 span "
@@ -322,7 +325,7 @@ def main(argv=None):
             if all(best[k][2] < ref_point[1] for k, _ in MAP_KEYS)
             else ""
         ),
-        f"- Hands: {hand_text} cuts the uncompensated spiral error by "
+        f"- Hands: {hand_text}{tied} cuts the uncompensated spiral error by "
         f"{100 * (1 - hands.value / hands.start_value):.0f} %; other criteria move by "
         f"{100 * rel[worst_other]:.2g} % at most.",
         f"- Tolerances: the target holds at {100 * alloc.value / alloc.start_value:.0f} % of the "

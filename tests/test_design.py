@@ -363,6 +363,36 @@ def test_constraint_is_met_and_binds(design):
     assert r2.value < r.value
 
 
+def test_a_hardware_variable_moves_to_where_its_constraint_binds(design):
+    """A tolerance (a hardware variable) is cheapest at its loosest, so under a limit on
+    the worst position σ it must go to where σ reaches the limit: that tolerance found
+    independently, by bisection of the exact σ in the tolerance (σ grows with it). The
+    optimiser once evaluated the criteria with the start's hardware, so a hardware
+    variable had no gradient and came back at its start."""
+    from scipy.optimize import brentq
+
+    poses = jt.design_poses(None, n_sweep=3, n_random=8, box=2)
+    name = "tolerances.base_joints"
+    paper = float(design.hardware.tolerances.base_joints)
+    bounds = {name: (0.1 * paper, 10 * paper)}
+
+    def sigma(t):
+        d = design.replace({name: t})
+        return jt.assess_design(d, workspace=poses).values["max_position_sigma_mm"]
+
+    limit = 1.2 * sigma(paper)
+    t_star = brentq(lambda t: sigma(t) - limit, paper, 10 * paper, xtol=1e-9 * paper)
+    con = jt.parse_constraint(f"max_position_sigma_mm<={limit}")
+    r = jt.optimize_design(
+        design, [name], "tolerance_cost", [con], workspace=poses, bounds=bounds, starts=2
+    )
+    start, found = r.variables[name]
+    assert start == pytest.approx(paper) and r.feasible and r.constraints[0]["met"]
+    assert r.optimum.values["max_position_sigma_mm"] == pytest.approx(limit, rel=0.005)
+    assert found == pytest.approx(t_star, rel=0.005), (found, t_star)
+    assert r.value < r.start_value
+
+
 # ---------------------------------------------------------------- bad input
 
 

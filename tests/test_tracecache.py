@@ -138,6 +138,18 @@ def test_a_repeated_call_finds_its_program_without_pickling_its_arguments(
     np.testing.assert_allclose(lengths(table, pose), first, rtol=0, atol=1e-12)
 
 
+def test_a_number_where_an_earlier_call_had_an_array_is_another_program(store):
+    """The repeat check meets a Python number at a leaf where the earlier call had an array
+    (a design whose tolerance was set as a float, after one set as an array): it makes the
+    key again and gives the number's result, where it once raised on the number's missing
+    dtype."""
+    f = _jit.jit(jt._linalg.computed_once)
+    assert float(f(np.asarray(2.0))) == 2.0
+    assert float(f(np.asarray(2.0))) == 2.0  # a repeat
+    assert float(f(3.0)) == 3.0
+    assert float(f(np.asarray(4.0))) == 4.0
+
+
 def test_device_arrays_run_the_program_compiled_for_host_arrays(table, store):
     """A stored program's caller, compiled for host arrays, runs uncommitted device arrays
     as they are (no copy back to the host and over again) and an array committed to a

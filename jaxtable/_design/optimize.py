@@ -212,7 +212,8 @@ class _Loss(eqx.Module):
 
     def __call__(self, z, args):
         mu, p, d, eps = args
-        c = _criteria_once(set_values(d, self.values(z)).table(), d.hardware, self.poses, p)
+        d = set_values(d, self.values(z))  # geometry and hardware (lead, tolerances, ...)
+        c = _criteria_once(d.table(), d.hardware, self.poses, p)
         pen = sum(
             jnp.maximum(0.0, _relative_violation(op, lim, c[name])) ** 2
             for (name, op), lim in zip(self.kinds, self.limits)
