@@ -193,7 +193,7 @@ def write_optimization_report(
     lines += [
         "",
         f"{len(r.candidates)} candidates (starts × discrete choices); their exact "
-        f"{r.objective} spans {spread:.3g} {CRITERIA[r.objective].unit}"
+        f"{r.objective} spans {f'{spread:.3g} {CRITERIA[r.objective].unit}'.rstrip()}"
         + (" — the starts agree" if spread <= 1e-3 * max(abs(r.value), 1e-12) else ""),
         "",
         "The optimised table is `design.toml` (any verb's `--table` reads it).",
