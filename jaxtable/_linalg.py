@@ -179,13 +179,11 @@ matrix's largest eigenvalue wide (trace 1), so the midpoint is within 2⁻⁴¹ 
 
 
 def _minors(x, a, b2, s):
-    """Leading minors of s (x I − T) for the tridiagonal T = (a, b), b2 = b²: the last one
-    (the characteristic polynomial's value up to sign), its derivative in x, and whether
-    all are positive (s = +1: x above every eigenvalue; s = −1: below every one). Three-term
+    """The last leading minor of s (x I − T) for the tridiagonal T = (a, b), b2 = b² (the
+    characteristic polynomial's value up to sign) and its derivative in x. Three-term
     recurrence, no divisions."""
     prev, minor = 1.0, s * (x - a[0])
     dprev, dminor = 0.0, s
-    positive = minor > 0
     for i in range(1, a.shape[0]):
         t = s * (x - a[i])
         prev, minor, dprev, dminor = (
@@ -194,8 +192,21 @@ def _minors(x, a, b2, s):
             dminor,
             s * minor + t * dminor - b2[i - 1] * dprev,
         )
-        positive = positive & (minor > 0)
-    return minor, dminor, positive
+    return minor, dminor
+
+
+def _all_minors_positive(sx, sa, b2):
+    """Whether every leading minor of s (x I − T) is positive (s = +1: x above every
+    eigenvalue of T; s = −1: below every one), given sx = s x and sa = s a (the diagonal's
+    product taken once, outside the bisection's loop). Four operations a row: the running
+    minimum is one (a comparison and a conjunction per minor were two; 9,076 → 8,273
+    counted operations a pose in the error map's kernel)."""
+    prev, minor = 1.0, sx - sa[..., 0]
+    low = minor
+    for i in range(1, sa.shape[-1]):
+        prev, minor = minor, (sx - sa[..., i]) * minor - b2[i - 1] * prev
+        low = jnp.minimum(low, minor)
+    return low > 0
 
 
 def extreme_eigvals_psd(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "2"]:
@@ -228,16 +239,18 @@ def extreme_eigvals_psd(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "2"]:
     lo = jnp.stack([jnp.max(a), jnp.maximum(jnp.min(a - r), 0.0)])
     hi = jnp.stack([jnp.max(a + r), jnp.min(a)])
 
+    sa = s[:, None] * a  # (2, n): the diagonal of s T, outside the loop
+
     def bisect(_, carry):  # the brackets are [lo, lo + w]
         lo, w = carry
         w = 0.5 * w
         x = lo + w
-        root_above = _minors(x, a, b2, s)[2] ^ (s > 0)
+        root_above = _all_minors_positive(s * x, sa, b2) ^ (s > 0)
         return jnp.where(root_above, x, lo), w
 
     lo, w = jax.lax.fori_loop(0, BISECTIONS, bisect, (lo, hi - lo))
     x = lo + 0.5 * w
-    p, dp, _ = _minors(x, a, b2, s)
+    p, dp = _minors(x, a, b2, s)
     step = p / jnp.where(dp != 0, dp, 1.0)
     x = jnp.where(dp != 0, jnp.clip(x - step, lo, lo + w), x)
     return scale * x
