@@ -107,3 +107,89 @@ def numpy_design_criteria(
         "max_leg_force_N": float(force.max()),
         "first_frequency_Hz": float(np.sqrt(1e3 * lam) / (2 * np.pi)),
     }
+
+
+def numpy_error_map(table: Table, sigmas: np.ndarray, poses: np.ndarray, rho: float) -> tuple:
+    """Baseline for the tolerance error map at (N, 6) commanded poses, vectorised numpy with
+    central differences, as a numpy user would write it: the residual of each leg,
+    r_i = |l_i| − L0_i − s_i − c_i Δα_i − ε_i s_i (s the nominal compensated command, fixed;
+    c = lead / 2π; Δα the rod twist from home, both ends of it moved by a joint error), its
+    pose Jacobian K in (t, ω) (ω the small rotation vector in the base frame) by central
+    differences (h = 1e-3 mm, 1e-6 rad), the joints' gains by central differences of every
+    leg's joint component at once (a leg's residual depends on its own joints only), the
+    linear ones in closed form (L0: 1; ε: s²; the lead: (Δα / 2π)²); σ per source from
+    `np.linalg.inv(K)`. `sigmas` (6,): σ per source in model units, ordered as
+    `jaxtable`'s sources (base joints, platform joints, zero length, lead error, clearance,
+    spiral lead). `rho`: the platform radius, mm.
+
+    Returns (std (N, 7, 6): per source and the total, x y z mm and the rotation vector rad;
+    bias (N, 6): the pose error of an uncompensated command, K⁻¹ c Δα; cond (N,): the
+    2-norm condition number (`np.linalg.cond`) of the Euler-angle Jacobian with its angle
+    columns divided by `rho`). Less work than jaxtable's map: no reachability, no summary."""
+    a0 = np.asarray(table.platform_joints)
+    b0 = np.asarray(table.base_joints)
+    n_ax = np.asarray(table.base_axes)
+    jp = np.asarray(table.platform_axes)
+    c = np.asarray(table.signed_lead) / (2 * np.pi)
+    L0 = np.asarray(table.zero_lengths)
+    up = np.array([0.0, 0.0, float(table.home_height)])
+
+    def twist(t, R, a, b):  # leg lengths (N, 6) and the rod twist's sine and cosine terms
+        l = (t + up)[:, None, :] + np.einsum("nij,kj->nki", R, a) - b
+        L = np.linalg.norm(l, axis=-1)
+        u = l / L[..., None]
+        m = np.cross(n_ax, u)
+        k = np.cross(np.einsum("nij,kj->nki", R, jp), u)
+        return L, np.sum(u * np.cross(m, k), -1), np.sum(m * k, -1)
+
+    def extension(t, R, a=a0, b=b0):  # |l| − L0 − c Δα, (N, 6)
+        L, s, co = twist(t, R, a, b)
+        _, s0, c0 = twist(np.zeros((1, 3)), np.eye(3)[None], a, b)
+        turn = np.arctan2(s * c0 - co * s0, co * c0 + s * s0)
+        return L - L0 - c * turn, turn
+
+    t, R = poses[:, :3], numpy_rotation(poses[:, 3:])
+    s, turn = extension(t, R)  # the nominal command; r = extension − s − ε s
+    n = len(poses)
+
+    def rotated(w):  # R turned by the small rotation vector w (3,) in the base frame
+        th = np.linalg.norm(w)
+        k = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / th
+        return (np.eye(3) + np.sin(th) * k + (1 - np.cos(th)) * k @ k) @ R
+
+    def rotated_euler(i, h):
+        q = poses[:, 3:].copy()
+        q[:, i] += h
+        return numpy_rotation(q)
+
+    ht, hw = 1e-3, 1e-6
+    K = np.empty((n, 6, 6))  # rows: legs; columns: t, ω
+    Ke = np.empty((n, 6, 3))  # columns: Euler angles
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = ht
+        K[:, :, i] = (extension(t + e, R)[0] - extension(t - e, R)[0]) / (2 * ht)
+        e[i] = hw
+        K[:, :, 3 + i] = (extension(t, rotated(e))[0] - extension(t, rotated(-e))[0]) / (2 * hw)
+        Ke[:, :, i] = (
+            extension(t, rotated_euler(i, hw))[0] - extension(t, rotated_euler(i, -hw))[0]
+        ) / (2 * hw)
+    gains = np.zeros((n, 6, 6))  # (pose, leg, source)
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = ht
+        gains[:, :, 0] += (
+            (extension(t, R, b=b0 + e)[0] - extension(t, R, b=b0 - e)[0]) / (2 * ht)
+        ) ** 2
+        gains[:, :, 1] += (
+            (extension(t, R, a=a0 + e)[0] - extension(t, R, a=a0 - e)[0]) / (2 * ht)
+        ) ** 2
+    gains[:, :, 2] = gains[:, :, 4] = 1.0  # L0 (zero length; clearance as an L0 error)
+    gains[:, :, 3] = s**2  # ε
+    gains[:, :, 5] = (turn / (2 * np.pi)) ** 2  # the lead
+    Kinv = np.linalg.inv(K)
+    var = np.einsum("npi,nis->nsp", Kinv**2, gains) * np.asarray(sigmas)[None, :, None] ** 2
+    std = np.sqrt(np.concatenate([var, var.sum(1, keepdims=True)], axis=1))
+    bias = np.einsum("npi,ni->np", Kinv, c * turn)
+    cond = np.linalg.cond(np.concatenate([K[:, :, :3], Ke / rho], axis=2))
+    return std, bias, cond

@@ -6,7 +6,10 @@ time is reported separately (first call minus the median). Baselines, written as
 would write them:
 - inverse kinematics + spiral term in vectorised numpy ((N, 6, 3) arrays, the twist from the
   cross products m = n×u, k = j×u as in the paper);
-- forward kinematics with `scipy.optimize.fsolve`, pose by pose, on that numpy model.
+- forward kinematics with `scipy.optimize.fsolve`, pose by pose, on that numpy model;
+- the tolerance error map in vectorised numpy: the pose Jacobian and the joints' gains by
+  central differences of that model, `np.linalg.inv` and `np.linalg.cond` over the poses;
+- the design criteria in a numpy loop over designs.
 
 The machine limit of the inverse kinematics is estimated from the compiled kernel: its
 operations per pose (counted in the optimised HLO: arithmetic, sqrt, sin/cos, atan2) times
@@ -54,9 +57,10 @@ from jaxtable._analysis.errormap import _budget_row
 from jaxtable._analysis.tolerances import SOURCES
 from jaxtable._context import Context
 from jaxtable._effects import resolve_effects
+from jaxtable._forward import platform_radius
 from jaxtable._model import inverse_extension
 
-from .baselines import numpy_command, numpy_design_criteria, scipy_forward
+from .baselines import numpy_command, numpy_design_criteria, numpy_error_map, scipy_forward
 
 CYCLE_US = 1000.0  # the real-time budget assumed: a 1 kHz servo cycle
 BOX = np.array([100.0, 100.0, 50.0, np.deg2rad(7.5), np.deg2rad(7.5), np.deg2rad(10.0)])
@@ -469,7 +473,9 @@ def run_benchmark(table: Table, quick: bool = False, log=print) -> dict:
         f"({em['budget_only_per_s']:.3g} without the condition number); machine limit "
         f"{em['limit_per_s']:.3g}/s ({em['per_s'] / em['limit_per_s']:.0%}), without "
         f"{em['budget_only_limit_per_s']:.3g}/s "
-        f"({em['budget_only_per_s'] / em['budget_only_limit_per_s']:.0%})"
+        f"({em['budget_only_per_s'] / em['budget_only_limit_per_s']:.0%}); numpy baseline "
+        f"{em['numpy_per_s']:.3g}/s (×{em['per_s'] / em['numpy_per_s']:.0f}), largest "
+        f"relative difference {em['numpy_max_rel_diff']:.1e}"
     )
 
     # -- diagnose on the bundled example, cold and warm compilation cache
@@ -676,11 +682,26 @@ def _bench_error_map(table: Table, quick: bool, rates: dict) -> dict:
     q = _poses(n, seed=5)
     first, t = _timed(lambda: error_map(table, grid=q, keep=False), 2 if quick else 3)
     _, t_lean = _timed(lambda: error_map(table, grid=q, keep=False, cond=False), 2 if quick else 3)
+    # the numpy baseline (central differences, np.linalg.inv and cond over the poses) on the
+    # first poses, and the largest difference from jaxtable's kept map there (float32)
+    n_np = 2000 if quick else 20000
+    sigmas = np.array([Tolerances().sigma(s) for s in SOURCES])
+    rho = float(platform_radius(table))
+    base = numpy_error_map(table, sigmas, q[:n_np], rho)
+    _, t_np = _timed(lambda: numpy_error_map(table, sigmas, q[:n_np], rho), 1 if quick else 2)
+    ours, _ = error_map(table, grid=q[:n_np])
+    diff = max(
+        float(np.max(np.abs(b - np.asarray(o, float)) / np.abs(np.asarray(o, float))))
+        for b, o in ((base[0][:, -1], ours.std[:, -1]), (base[2], ours.cond))
+    )
     return {
         "poses": n,
         "per_s": n / t,
         "compile_s": max(first - t, 0.0),
         "budget_only_per_s": n / t_lean,
+        "numpy_poses": n_np,
+        "numpy_per_s": n_np / t_np,
+        "numpy_max_rel_diff": diff,
         "ops_per_pose": error_map_op_counts(table, True),
         "budget_only_ops_per_pose": error_map_op_counts(table, False),
         "limit_per_s": machine_limit(error_map_op_counts(table, True), rates),
@@ -797,7 +818,17 @@ def markdown(r: dict) -> str:
         f"({r['error_map']['per_s'] / r['error_map']['limit_per_s']:.0%}), without the "
         f"condition number {r['error_map']['budget_only_limit_per_s']:.3g} poses/s "
         f"({r['error_map']['budget_only_per_s'] / r['error_map']['budget_only_limit_per_s']:.0%})"
-        " |",
+        + (
+            f"; numpy baseline (vectorised, central differences, `np.linalg.inv` and `cond` "
+            f"over the poses; no reachability or summary), {r['error_map']['numpy_poses']} "
+            f"poses: {r['error_map']['numpy_per_s']:.3g} poses/s, jaxtable "
+            f"{r['error_map']['per_s'] / r['error_map']['numpy_per_s']:.0f}×; largest "
+            f"relative difference of the total σ and the condition number "
+            f"{r['error_map']['numpy_max_rel_diff']:.1e} (the kept map is float32)"
+            if "numpy_per_s" in r["error_map"]
+            else ""
+        )
+        + " |",
     ]
     if "diagnose" in r:
         L.append(

@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout's b
 from benchmarks.baselines import (  # noqa: E402
     numpy_command,
     numpy_design_criteria,
+    numpy_error_map,
     scipy_forward,
 )
 from benchmarks.bench import hlo_op_counts, kernel_op_counts, machine_limit  # noqa: E402
@@ -28,6 +29,25 @@ def test_numpy_baseline_equals_the_compensated_command(table):
     np.testing.assert_allclose(
         numpy_command(table, poses), np.asarray(jt.actuator_command(table, poses)), atol=1e-9
     )
+
+
+def test_numpy_error_map_baseline_equals_the_error_map(table):
+    """The benchmark's numpy error map (central differences of the numpy model, np.linalg
+    inv and cond) against `jt.error_map` at random poses up to 1.5× the workspace box: every
+    source's σ, the total, the uncompensated bias and the condition number, to the kept
+    map's float32 rounding."""
+    from jaxtable._analysis.tolerances import SOURCES
+    from jaxtable._forward import platform_radius
+
+    poses = random_poses(300, seed=7) * 1.5
+    tol = jt.Tolerances()
+    sigmas = np.array([tol.sigma(s) for s in SOURCES])
+    std, bias, cond = numpy_error_map(table, sigmas, poses, float(platform_radius(table)))
+    m, _ = jt.error_map(table, tol, poses)
+    assert std.shape == m.std.shape and bias.shape == m.bias.shape
+    np.testing.assert_allclose(std, m.std, rtol=1e-6)
+    np.testing.assert_allclose(bias, m.bias, rtol=1e-6, atol=1e-6 * np.abs(m.bias).max())
+    np.testing.assert_allclose(cond, m.cond, rtol=1e-6)
 
 
 def test_scipy_baseline_recovers_the_pose(table):
