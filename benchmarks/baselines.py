@@ -20,29 +20,32 @@ def numpy_rotation(angles: np.ndarray) -> np.ndarray:
     return R
 
 
+def _legs_and_twist(table: Table, t: np.ndarray, R: np.ndarray, a=None, b=None) -> tuple:
+    """Leg lengths |l_i| (N, 6) and the rod twist's sine and cosine terms u·(m×k), m·k
+    (N, 6) with m = n×u, k = j×u (the paper's), at translations t (N, 3) from home and
+    rotations R (N, 3, 3); `a`, `b`: platform and base joints (default the table's)."""
+    a = np.asarray(table.platform_joints) if a is None else a
+    b = np.asarray(table.base_joints) if b is None else b
+    up = np.array([0.0, 0.0, float(table.home_height)])
+    l = (t + up)[:, None, :] + np.einsum("nij,kj->nki", R, a) - b
+    L = np.linalg.norm(l, axis=-1)
+    u = l / L[..., None]
+    m = np.cross(np.asarray(table.base_axes), u)
+    k = np.cross(np.einsum("nij,kj->nki", R, np.asarray(table.platform_axes)), u)
+    return L, np.sum(u * np.cross(m, k), -1), np.sum(m * k, -1)
+
+
+def _twist_from_home(table: Table, t, R, a=None, b=None) -> tuple:
+    """(|l_i|, the rod twist Δα_i from home in rad), (N, 6) each (`_legs_and_twist`)."""
+    L, s, c = _legs_and_twist(table, t, R, a, b)
+    _, s0, c0 = _legs_and_twist(table, np.zeros((1, 3)), np.eye(3)[None], a, b)
+    return L, np.arctan2(s * c0 - c * s0, c * c0 + s * s0)
+
+
 def numpy_command(table: Table, poses: np.ndarray) -> np.ndarray:
     """Baseline: compensated command |l_i| − lead·Δα_i/(2π), (N, 6) mm, vectorised numpy."""
-    a = np.asarray(table.platform_joints)
-    b = np.asarray(table.base_joints)
-    n_ax = np.asarray(table.base_axes)
-    jp = np.asarray(table.platform_axes)
-    lead = np.asarray(table.signed_lead)
-
-    def twist(q):
-        R = numpy_rotation(q[:, 3:])
-        t = q[:, :3] + np.array([0.0, 0.0, float(table.home_height)])
-        l = t[:, None, :] + np.einsum("nij,kj->nki", R, a) - b
-        L = np.linalg.norm(l, axis=-1)
-        u = l / L[..., None]
-        j = np.einsum("nij,kj->nki", R, jp)
-        m = np.cross(n_ax, u)
-        k = np.cross(j, u)
-        return L, np.sum(u * np.cross(m, k), -1), np.sum(m * k, -1)
-
-    L, s, c = twist(poses)
-    _, s0, c0 = twist(np.zeros((1, 6)))
-    beta = np.arctan2(s * c0 - c * s0, c * c0 + s * s0)
-    return L - lead * beta / (2 * np.pi)
+    L, beta = _twist_from_home(table, poses[:, :3], numpy_rotation(poses[:, 3:]))
+    return L - np.asarray(table.signed_lead) * beta / (2 * np.pi)
 
 
 def scipy_forward(table: Table, commands: np.ndarray) -> np.ndarray:
@@ -128,24 +131,11 @@ def numpy_error_map(table: Table, sigmas: np.ndarray, poses: np.ndarray, rho: fl
     columns divided by `rho`). Less work than jaxtable's map: no reachability, no summary."""
     a0 = np.asarray(table.platform_joints)
     b0 = np.asarray(table.base_joints)
-    n_ax = np.asarray(table.base_axes)
-    jp = np.asarray(table.platform_axes)
     c = np.asarray(table.signed_lead) / (2 * np.pi)
     L0 = np.asarray(table.zero_lengths)
-    up = np.array([0.0, 0.0, float(table.home_height)])
 
-    def twist(t, R, a, b):  # leg lengths (N, 6) and the rod twist's sine and cosine terms
-        l = (t + up)[:, None, :] + np.einsum("nij,kj->nki", R, a) - b
-        L = np.linalg.norm(l, axis=-1)
-        u = l / L[..., None]
-        m = np.cross(n_ax, u)
-        k = np.cross(np.einsum("nij,kj->nki", R, jp), u)
-        return L, np.sum(u * np.cross(m, k), -1), np.sum(m * k, -1)
-
-    def extension(t, R, a=a0, b=b0):  # |l| − L0 − c Δα, (N, 6)
-        L, s, co = twist(t, R, a, b)
-        _, s0, c0 = twist(np.zeros((1, 3)), np.eye(3)[None], a, b)
-        turn = np.arctan2(s * c0 - co * s0, co * c0 + s * s0)
+    def extension(t, R, a=a0, b=b0):  # |l| − L0 − c Δα and Δα, (N, 6) each
+        L, turn = _twist_from_home(table, t, R, a, b)
         return L - L0 - c * turn, turn
 
     t, R = poses[:, :3], numpy_rotation(poses[:, 3:])
