@@ -155,19 +155,14 @@ def numpy_error_map(table: Table, sigmas: np.ndarray, poses: np.ndarray, rho: fl
     ht, hw = 1e-3, 1e-6
     K = np.empty((n, 6, 6))  # rows: legs; columns: t, ω
     Ke = np.empty((n, 6, 3))  # columns: Euler angles
-    for i in range(3):
-        e = np.zeros(3)
-        e[i] = ht
+    gains = np.zeros((n, 6, 6))  # (pose, leg, source)
+    for i in range(3):  # x, y, z of a translation, a rotation, an Euler angle and the joints
+        e, w = np.eye(3)[i] * ht, np.eye(3)[i] * hw
         K[:, :, i] = (extension(t + e, R)[0] - extension(t - e, R)[0]) / (2 * ht)
-        e[i] = hw
-        K[:, :, 3 + i] = (extension(t, rotated(e))[0] - extension(t, rotated(-e))[0]) / (2 * hw)
+        K[:, :, 3 + i] = (extension(t, rotated(w))[0] - extension(t, rotated(-w))[0]) / (2 * hw)
         Ke[:, :, i] = (
             extension(t, rotated_euler(i, hw))[0] - extension(t, rotated_euler(i, -hw))[0]
         ) / (2 * hw)
-    gains = np.zeros((n, 6, 6))  # (pose, leg, source)
-    for i in range(3):
-        e = np.zeros(3)
-        e[i] = ht
         gains[:, :, 0] += (
             (extension(t, R, b=b0 + e)[0] - extension(t, R, b=b0 - e)[0]) / (2 * ht)
         ) ** 2

@@ -54,7 +54,6 @@ from jaxtable import (
 
 # the compiled kernel itself (op counts, machine limit) is an internal on purpose
 from jaxtable._analysis.errormap import _budget_row
-from jaxtable._analysis.tolerances import SOURCES
 from jaxtable._context import Context
 from jaxtable._effects import resolve_effects
 from jaxtable._forward import platform_radius
@@ -253,7 +252,7 @@ def kernel_op_counts(table: Table) -> dict:
 def error_map_op_counts(table: Table, cond: bool) -> dict:
     """Operations per pose of the compiled error-map kernel (`hlo_op_counts`): the budget,
     the condition number when `cond`, reachability and the summary's bins."""
-    sigmas = tuple(Tolerances().sigma(s) for s in SOURCES)
+    sigmas = Tolerances().sigmas()
     N = 4096
     f = jax.jit(jax.vmap(lambda q: _budget_row((table, sigmas, cond, False), q)))
     return hlo_op_counts(f.lower(jnp.zeros((N, 6))).compile().as_text(), N)
@@ -685,7 +684,7 @@ def _bench_error_map(table: Table, quick: bool, rates: dict) -> dict:
     # the numpy baseline (central differences, np.linalg.inv and cond over the poses) on the
     # first poses, and the largest difference from jaxtable's kept map there (float32)
     n_np = 2000 if quick else 20000
-    sigmas = np.array([Tolerances().sigma(s) for s in SOURCES])
+    sigmas = np.array(Tolerances().sigmas())
     rho = float(platform_radius(table))
     base = numpy_error_map(table, sigmas, q[:n_np], rho)
     _, t_np = _timed(lambda: numpy_error_map(table, sigmas, q[:n_np], rho), 1 if quick else 2)

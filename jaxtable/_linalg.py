@@ -178,14 +178,14 @@ BISECTIONS = 40
 matrix's largest eigenvalue wide (trace 1), so the midpoint is within 2⁻⁴¹ of it."""
 
 
-def _minors(x, a, b2, s):
+def _minors(sx, sa, b2, s):
     """The last leading minor of s (x I − T) for the tridiagonal T = (a, b), b2 = b² (the
-    characteristic polynomial's value up to sign) and its derivative in x. Three-term
-    recurrence, no divisions."""
-    prev, minor = 1.0, s * (x - a[0])
+    characteristic polynomial's value up to sign) and its derivative in x, given sx = s x and
+    sa = s a as `_all_minors_positive` takes them. Three-term recurrence, no divisions."""
+    prev, minor = 1.0, sx - sa[..., 0]
     dprev, dminor = 0.0, s
-    for i in range(1, a.shape[0]):
-        t = s * (x - a[i])
+    for i in range(1, sa.shape[-1]):
+        t = sx - sa[..., i]
         prev, minor, dprev, dminor = (
             minor,
             t * minor - b2[i - 1] * prev,
@@ -250,7 +250,7 @@ def extreme_eigvals_psd(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, "2"]:
 
     lo, w = jax.lax.fori_loop(0, BISECTIONS, bisect, (lo, hi - lo))
     x = lo + 0.5 * w
-    p, dp = _minors(x, a, b2, s)
+    p, dp = _minors(s * x, sa, b2, s)
     step = p / jnp.where(dp != 0, dp, 1.0)
     x = jnp.where(dp != 0, jnp.clip(x - step, lo, lo + w), x)
     return scale * x

@@ -36,12 +36,11 @@ def test_numpy_error_map_baseline_equals_the_error_map(table):
     inv and cond) against `jt.error_map` at random poses up to 1.5× the workspace box: every
     source's σ, the total, the uncompensated bias and the condition number, to the kept
     map's float32 rounding."""
-    from jaxtable._analysis.tolerances import SOURCES
     from jaxtable._forward import platform_radius
 
     poses = random_poses(300, seed=7) * 1.5
     tol = jt.Tolerances()
-    sigmas = np.array([tol.sigma(s) for s in SOURCES])
+    sigmas = np.array(tol.sigmas())
     std, bias, cond = numpy_error_map(table, sigmas, poses, float(platform_radius(table)))
     m, _ = jt.error_map(table, tol, poses)
     assert std.shape == m.std.shape and bias.shape == m.bias.shape

@@ -19,10 +19,6 @@ from jaxtable._analysis.tolerances import (
 budget = quick_jit(budget_one)
 
 
-def sigmas(tol):
-    return tuple(tol.sigma(s) for s in SOURCES)
-
-
 def test_default_is_the_papers_budget():
     t = Tolerances()
     assert (t.base_joints, t.platform_joints, t.lead_error, t.clearance) == (0.01, 0.01, 0.025, 0.1)
@@ -61,14 +57,14 @@ def test_linear_identities(table):
     coordinates), exactly like an L0 error of the same σ; at home no travel means no lead
     error; the clearance acts as an L0 error of σ = w/2."""
     pose = jnp.asarray([-120.0, 80.0, 30.0, 0.05, -0.08, 0.1])
-    std = np.asarray(budget(table, sigmas(Tolerances()), pose)[0])
+    std = np.asarray(budget(table, Tolerances().sigmas(), pose)[0])
     src = {s: std[k] for k, s in enumerate(SOURCES)}
     # exact for the rigid part; the passive term's own dependence on the joints adds ~1e-4
     np.testing.assert_allclose(src["base_joints"], src["zero_length"], rtol=1e-3)
     np.testing.assert_allclose(src["platform_joints"], src["zero_length"], rtol=1e-3)
     np.testing.assert_allclose(src["clearance"], 5 * src["zero_length"], rtol=1e-4)
     np.testing.assert_allclose(std[-1], np.sqrt((std[:-1] ** 2).sum(0)), rtol=1e-12)
-    home = np.asarray(budget(table, sigmas(Tolerances()), jnp.zeros(6))[0])
+    home = np.asarray(budget(table, Tolerances().sigmas(), jnp.zeros(6))[0])
     assert np.abs(home[SOURCES.index("lead_error")]).max() < 1e-15
     assert np.abs(home[SOURCES.index("zero_length")]).max() > 1e-3
 
@@ -80,7 +76,7 @@ def test_linear_matches_monte_carlo_at_paper_tolerances(table):
     )
     err = monte_carlo(table, Tolerances(), poses, 2000, seed=3)
     lin = np.stack(
-        [np.asarray(budget(table, sigmas(Tolerances()), jnp.asarray(p))[0][-1]) for p in poses]
+        [np.asarray(budget(table, Tolerances().sigmas(), jnp.asarray(p))[0][-1]) for p in poses]
     )
     np.testing.assert_allclose(err.std(0) / lin, 1.0, atol=0.08)
     assert np.all(np.abs(err.mean(0)) < 4 * lin / np.sqrt(2000))  # no bias beyond noise
@@ -92,7 +88,7 @@ def test_linear_breaks_down_near_the_singular_low_pose(table):
     Monte Carlo mean sits well below zero (linear theory: 0) and the spread is larger. Lower
     still (z = −655 mm), some realisations have no pose near the command at all."""
     pose = np.array([[0.0, 0.0, -652.0, 0.0, 0.0, 0.0]])
-    std, _, cond, _ = budget(table, sigmas(Tolerances()), jnp.asarray(pose[0]))
+    std, _, cond, _ = budget(table, Tolerances().sigmas(), jnp.asarray(pose[0]))
     lin_z = float(std[-1][2])
     assert float(cond) > 40
     err = monte_carlo(table, Tolerances(), pose, 4000, seed=1)[:, 0, 2]

@@ -185,7 +185,7 @@ def error_map(
         grid = PoseList(np.asarray(grid, dtype=float).reshape(-1, 6))
     if len(grid) == 0:
         raise ValueError("error_map: the grid has no poses")
-    sigmas = tuple(tolerances.sigma(s) for s in SOURCES)
+    sigmas = tolerances.sigmas()
     names = list(SOURCES) + ["total", "total (spiral uncompensated)"]
     hist = _Histograms((2, len(names)))  # rows: translation mm, rotation arcsec
     n_reach = 0

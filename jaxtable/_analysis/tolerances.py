@@ -85,6 +85,10 @@ class Tolerances(eqx.Module):
             return v / 2.0
         return v
 
+    def sigmas(self) -> tuple:
+        """σ of every source's parameter in model units (`sigma`), ordered as `SOURCES`."""
+        return tuple(self.sigma(s) for s in SOURCES)
+
     def scaled(self, factor: float) -> "Tolerances":
         return Tolerances(**{s: getattr(self, s) * factor for s in SOURCES})
 

@@ -154,8 +154,7 @@ def pose_criteria(table: Table, hw: Hardware, pose: Float[ArrayLike, "6"]) -> di
     speed = hw.velocity + hw.angular_velocity * jnp.linalg.norm(J[:, 3:], axis=1)
     rpm = jnp.where(lead > 0, 60.0 * speed / jnp.where(lead > 0, lead, 1.0), 0.0)
 
-    sigmas = tuple(hw.tolerances.sigma(s) for s in SOURCES)
-    std, bias, _, _ = budget_one(table, sigmas, pose, with_cond=False)
+    std, bias, _, _ = budget_one(table, hw.tolerances.sigmas(), pose, with_cond=False)
 
     L = leg_lengths(table, pose)
     stroke = jnp.minimum(L - table.stroke[0], table.stroke[1] - L)
