@@ -205,16 +205,22 @@ class Thermal(AbstractEffect):
         return self.alpha * (ctx.temperature - REFERENCE_TEMPERATURE) * table.zero_lengths
 
 
+def gravity_wrench(table: Table, pose: Float[ArrayLike, "6"], payload=0.0) -> Float[ArrayLike, "6"]:
+    """The wrench the legs hold (6,): force N and moment about the platform origin N·mm,
+    base axes, of the weight of the platform plus `payload` (kg, at the platform CoG):
+    (W, R c × W), W = (0, 0, −m g)."""
+    R = rotation_matrix(pose[3:])
+    W = jnp.array([0.0, 0.0, -GRAVITY]) * (table.platform_mass + payload)
+    return jnp.concatenate([W, jnp.cross(R @ table.platform_cog, W)])
+
+
 def leg_forces(table: Table, pose: Float[ArrayLike, "6"], payload=0.0) -> Float[ArrayLike, "6"]:
     """Axial leg forces F (6,), N, tension positive, holding the platform mass plus `payload`
     (kg, at the platform CoG) against gravity (−z) in static equilibrium:
-    Σ F_i u_i = W and Σ F_i (R a_i × u_i) = R c × W, W = (0, 0, −m g)."""
+    Σ F_i u_i = W and Σ F_i (R a_i × u_i) = R c × W, W = (0, 0, −m g) (`gravity_wrench`)."""
     u, moment = leg_lines(table, pose)
-    R = rotation_matrix(pose[3:])
     A = jnp.concatenate([u.T, moment.T], axis=0)  # (6, 6), column i = leg i
-    W = jnp.array([0.0, 0.0, -GRAVITY]) * (table.platform_mass + payload)
-    rhs = jnp.concatenate([W, jnp.cross(R @ table.platform_cog, W)])
-    return solve_small(A, rhs[:, None])[:, 0]
+    return solve_small(A, gravity_wrench(table, pose, payload)[:, None])[:, 0]
 
 
 class Compliance(AbstractEffect):

@@ -191,3 +191,44 @@ def test_solve_derivatives_in_a_and_b_equal_the_closed_form_both_modes():
     fd = (np.linalg.solve(A + h * dA, B) - np.linalg.solve(A - h * dA, B)) / (2 * h)
     _, got = jax.jvp(solve_small, (jnp.asarray(A), jnp.asarray(B)), (dA, np.zeros_like(B)))
     np.testing.assert_allclose(np.asarray(got), fd, rtol=1e-6, atol=1e-8)
+
+
+def test_normal_inverse_derivative_is_the_closed_form_both_modes():
+    """d(A⁻¹) = −A⁻¹ dA A⁻¹ (`inv_normal_small`'s rule), forward and reverse, against numpy's
+    inverse and against central differences of numpy's inverse."""
+    rng = np.random.default_rng(8)
+    A = rng.normal(size=(6, 6)) + 3 * np.eye(6)
+    dA = rng.normal(size=(6, 6))
+    Ai = np.linalg.inv(A)
+    want = -Ai @ dA @ Ai
+    value, got = jax.jvp(inv_normal_small, (jnp.asarray(A),), (jnp.asarray(dA),))
+    np.testing.assert_allclose(np.asarray(value), Ai, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(got), want, rtol=1e-10, atol=1e-13)
+    h = 1e-6
+    fd = (np.linalg.inv(A + h * dA) - np.linalg.inv(A - h * dA)) / (2 * h)
+    np.testing.assert_allclose(np.asarray(got), fd, rtol=1e-6, atol=1e-9)
+    W = rng.normal(size=(6, 6))  # reverse: <W, dX> = <gA, dA>
+    (gA,) = jax.vjp(inv_normal_small, jnp.asarray(A))[1](jnp.asarray(W))
+    assert float(np.sum(np.asarray(gA) * dA)) == pytest.approx(float(np.sum(W * want)), rel=1e-10)
+
+
+def test_largest_eigenvalue_derivative_is_the_eigenvector_form_both_modes():
+    """dλ = vᵀ dS v for the unit eigenvector v of a simple largest eigenvalue
+    (`largest_eigval_small`'s rule), forward and reverse, against numpy's eigenvector and
+    against central differences of numpy's eigenvalue."""
+    rng = np.random.default_rng(9)
+    for n in (3, 6):
+        Q = np.linalg.qr(rng.normal(size=(n, n)))[0]
+        S = (Q * np.linspace(0.2, 2.0, n)) @ Q.T
+        dS = rng.normal(size=(n, n))
+        dS = dS + dS.T
+        v = np.linalg.eigh(S)[1][:, -1]
+        want = v @ dS @ v
+        lam, got = jax.jvp(largest_eigval_small, (jnp.asarray(S),), (jnp.asarray(dS),))
+        assert float(lam) == pytest.approx(2.0, rel=1e-10)
+        assert float(got) == pytest.approx(want, rel=1e-9)
+        h = 1e-6
+        top = [np.linalg.eigvalsh(S + sgn * h * dS)[-1] for sgn in (1, -1)]
+        assert float(got) == pytest.approx((top[0] - top[1]) / (2 * h), rel=1e-6)
+        g = np.asarray(jax.grad(largest_eigval_small)(jnp.asarray(S)))
+        assert float(np.sum(g * dS)) == pytest.approx(want, rel=1e-9)

@@ -49,11 +49,12 @@ from jaxtyping import ArrayLike, Float
 
 from .._analysis.errormap import budget_one
 from .._analysis.tolerances import SOURCES, Tolerances
-from .._effects import leg_forces
+from .._effects import gravity_wrench
 from .._kinematics import joint_bend, leg_lengths, leg_lines
 from .._linalg import (
     inv_small,
     largest_eigval_small,
+    matmul_small,
     smallest_generalized_eigval,
 )
 from .._rotation import ARCSEC_PER_RAD, rotation_matrix
@@ -144,10 +145,11 @@ def pose_criteria(table: Table, hw: Hardware, pose: Float[ArrayLike, "6"]) -> di
     k_r = 1.0 / largest_eigval_small(C[3:, 3:])
 
     mass = hw.moving_mass(table)
-    f0 = leg_forces(table, pose, hw.payload)
+    # the leg forces F solve Jᵀ F = wrench (`leg_forces`), with J's factorisation above
+    f0 = matmul_small(Jinv.T, gravity_wrench(table, pose, hw.payload))
     rc = rotation_matrix(pose[3:]) @ table.platform_cog
     G = -mass * hw.acceleration * jnp.concatenate([jnp.eye(3), _skew(rc)])  # wrench per unit a
-    B = Jinv.T @ G  # leg forces per unit acceleration: Jᵀ F = wrench
+    B = Jinv.T @ G  # leg forces per unit acceleration
     force = jnp.abs(f0) + jnp.linalg.norm(B, axis=1)
     lead = table.lead
     torque = force * lead / (2 * jnp.pi * hw.efficiency) / 1000.0
