@@ -1,9 +1,12 @@
 """The recording context of one stop: what an effect may depend on besides pose and s."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, Int
+
+from ._errors import is_concrete
 
 REFERENCE_TEMPERATURE = 20.0  # °C
 
@@ -54,12 +57,14 @@ def batch_context(n: int, context: "Context | None" = None) -> Context:
             raise ValueError(
                 f"context {name} has shape {jnp.shape(getattr(c, name))}, expected () or ({n},)"
             )
+    # numpy where nothing is traced: an eager jnp.broadcast_to compiles a program per shape
+    xp = np if all(is_concrete(x) for x in jax.tree.leaves(c)) else jnp
     return Context(
-        jnp.broadcast_to(direction, (n, 6)),
-        jnp.broadcast_to(c.temperature, (n,)),
-        jnp.broadcast_to(c.payload, (n,)),
-        jnp.broadcast_to(c.session, (n,)),
-        jnp.broadcast_to(c.time, (n,)),
+        xp.broadcast_to(xp.asarray(c.direction), (n, 6)),
+        xp.broadcast_to(xp.asarray(c.temperature), (n,)),
+        xp.broadcast_to(xp.asarray(c.payload), (n,)),
+        xp.broadcast_to(xp.asarray(c.session), (n,)),
+        xp.broadcast_to(xp.asarray(c.time), (n,)),
     )
 
 
@@ -133,13 +138,16 @@ def directions(cmd_lengths: np.ndarray) -> np.ndarray:
     return np.take_along_axis(d, last, axis=0)
 
 
-def split_context(n: int, context: "Context | None" = None):
-    """(shared, per_row) for a batch of n stops: the context itself when no leaf has a batch
-    axis (shared by every row, never broadcast to n copies), else `batch_context(n, context)`.
-    Exactly one of the two is None."""
+def split_context(n: int, context: "Context | None" = None, share: bool = True):
+    """(shared, per_row) for a batch of n stops: with `share`, the context itself when no
+    leaf has a batch axis (shared by every row, never broadcast to n copies), else
+    `batch_context(n, context)`. Exactly one of the two is None. `share=False`: always per
+    row (a small batch, whose kernel then compiles once for either kind of context)."""
     c = Context() if context is None else context
-    if jnp.ndim(c.direction) == 1 and all(
-        jnp.ndim(getattr(c, k)) == 0 for k in ("temperature", "payload", "session", "time")
+    if (
+        share
+        and jnp.ndim(c.direction) == 1
+        and all(jnp.ndim(getattr(c, k)) == 0 for k in ("temperature", "payload", "session", "time"))
     ):
         return c, None
     return None, batch_context(n, c)
