@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import quick_jit, random_poses
+from conftest import compiled_programs, quick_jit, random_poses
 
 import jaxtable as jt
 from jaxtable import _kinematics as kin
@@ -427,3 +427,25 @@ def test_chord_step_that_would_not_halve_is_not_taken():
     y, k, done = run(0.05)
     np.testing.assert_allclose(np.asarray(y), 0.05, rtol=1e-12)
     assert bool(done) and int(k) > 3  # linear convergence: more steps than Newton's ~4
+
+
+def test_small_batches_run_one_kernel_whatever_the_kind_of_guess_and_context(table):
+    """Under `LARGE_BATCH` rows a shared guess or context is taken per row: a batch from
+    home in the home context, one with a guess per row and one with a context per row run
+    the same compiled kernel, and commands likewise; the poses are those of the shared
+    inputs, exactly."""
+    poses = random_poses(20, seed=5) / 2
+    ctx = jt.Context(temperature=np.full(20, 20.0))  # per row, the home temperature
+    with compiled_programs():
+        cmd = np.asarray(jt.actuator_command(table, poses))
+        a = jt.forward_solve(table, cmd)  # shared guess (home) and context
+    with compiled_programs() as later:
+        cmd_rows = np.asarray(jt.actuator_command(table, poses, context=ctx))
+        b = jt.forward_solve(table, cmd, guess=np.zeros((20, 6)))
+        c = jt.forward_solve(table, cmd, context=ctx)
+    assert not [p for p in later if "_row" in p], later
+    np.testing.assert_array_equal(cmd_rows, cmd)
+    for r in (b, c):
+        np.testing.assert_array_equal(np.asarray(r.pose), np.asarray(a.pose))
+    assert np.all(np.asarray(a.ok))
+    np.testing.assert_allclose(np.asarray(a.pose), poses, atol=1e-9)
