@@ -181,8 +181,7 @@ def actuator_command(
     )
     eff = resolve_effects(table, effects) if compensated else {}
     flat, batch_shape = flatten_batch(poses, 1)
-    # a small batch takes its context per row: one compiled kernel whatever the context's kind
-    shared_ctx, row_ctx = split_context(flat.shape[0], context, flat.shape[0] >= LARGE_BATCH)
+    shared_ctx, row_ctx = split_context(flat.shape[0], context)
     cmd = jnp.asarray(
         run_batch(_command_row, (table, eff, shared_ctx), (flat, row_ctx), chunk=chunk)
     )
@@ -265,23 +264,22 @@ def forward_solve(
     flat, batch_shape = flatten_batch(commands, 1)
     s = flat - (table if nominal is None else nominal).zero_lengths
     n = flat.shape[0]
+    large = n >= LARGE_BATCH  # smaller batches: plain Newton, the quickest to compile
     if guess is None:
         guess = jnp.zeros(6)
     else:
         check_finite_poses(guess, "guess")
         guess = jnp.asarray(guess, dtype=jnp.float64)
-        if guess.ndim > 1:
-            guess = jnp.broadcast_to(guess.reshape(-1, 6), (n, 6))
-    large = n >= LARGE_BATCH  # smaller batches: plain Newton, the quickest to compile
-    if not large and guess.ndim == 1:  # guess and context per row: one compiled kernel
-        # whatever their kinds (numpy where concrete: an eager jnp op compiles per shape)
-        guess = (np if is_concrete(guess) else jnp).broadcast_to(guess, (n, 6))
+    if guess.ndim > 1 or not large:  # per row; a small batch's always, as its context
+        # (`split_context`): one compiled kernel whatever their kinds. numpy where concrete:
+        # an eager jnp op compiles a program per shape
+        guess = (np if is_concrete(guess) else jnp).broadcast_to(guess.reshape(-1, 6), (n, 6))
     shared_guess, row_guess = (guess, None) if guess.ndim == 1 else (None, guess)
     if options.peel_first_step is None:  # one first step for the batch (see ForwardOptions)
         options = dataclasses.replace(options, peel_first_step=large and shared_guess is not None)
     if options.chord_below is None:
         options = dataclasses.replace(options, chord_below=CHORD_BELOW if large else 0.0)
-    shared_ctx, row_ctx = split_context(n, context, large)
+    shared_ctx, row_ctx = split_context(n, context)
     out = run_batch(
         _forward_row,
         (table, eff, options, shared_guess, shared_ctx),

@@ -7,6 +7,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 
 from ._errors import is_concrete
+from ._jit import LARGE_BATCH
 
 REFERENCE_TEMPERATURE = 20.0  # °C
 
@@ -138,14 +139,16 @@ def directions(cmd_lengths: np.ndarray) -> np.ndarray:
     return np.take_along_axis(d, last, axis=0)
 
 
-def split_context(n: int, context: "Context | None" = None, share: bool = True):
-    """(shared, per_row) for a batch of n stops: with `share`, the context itself when no
-    leaf has a batch axis (shared by every row, never broadcast to n copies), else
-    `batch_context(n, context)`. Exactly one of the two is None. `share=False`: always per
-    row (a small batch, whose kernel then compiles once for either kind of context)."""
+def split_context(n: int, context: "Context | None" = None):
+    """(shared, per_row) for a batch of n stops. Exactly one of the two is None.
+
+    From `LARGE_BATCH` rows, the context itself when no leaf has a batch axis (shared by
+    every row, never broadcast to n copies). Otherwise, and always for a smaller batch,
+    `batch_context(n, context)`: a small batch's kernel then compiles once, whatever the
+    kind of its context."""
     c = Context() if context is None else context
     if (
-        share
+        n >= LARGE_BATCH
         and jnp.ndim(c.direction) == 1
         and all(jnp.ndim(getattr(c, k)) == 0 for k in ("temperature", "payload", "session", "time"))
     ):
