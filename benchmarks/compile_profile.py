@@ -41,6 +41,7 @@ class _Recorder:
         self.tests = collections.defaultdict(lambda: collections.Counter())
         self.programs = collections.defaultdict(lambda: collections.Counter())
         self.wall = {}
+        self.span = {}  # test -> (start, end), seconds since the epoch
 
     def listen(self, event, duration, fun_name="?", **_):
         kind = EVENTS.get(event)
@@ -48,23 +49,30 @@ class _Recorder:
             return
         self.tests[self.test][kind] += duration
         self.tests[self.test][kind + "_n"] += 1
+        self.programs[fun_name][kind] += duration
         if kind == "compile":
-            self.programs[fun_name]["compile"] += duration
             self.programs[fun_name]["n"] += 1
 
     @pytest.hookimpl(hookwrapper=True)
     def pytest_runtest_protocol(self, item, nextitem):
         self.test = item.nodeid
-        t0 = time.perf_counter()
+        t0, e0 = time.perf_counter(), time.time()
         yield
         self.wall[item.nodeid] = time.perf_counter() - t0
+        self.span[item.nodeid] = (e0, time.time())
         self.test = "<between tests>"
 
     def pytest_unconfigure(self, config):
         out = _out()
         out.mkdir(parents=True, exist_ok=True)
         worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
-        data = {"tests": self.tests, "programs": self.programs, "wall": self.wall}
+        data = {
+            "tests": self.tests,
+            "programs": self.programs,
+            "wall": self.wall,
+            "span": self.span,
+            "worker": worker,
+        }
         (out / f"{worker}.json").write_text(json.dumps(data))
 
 
@@ -100,10 +108,14 @@ def _eager(name: str) -> bool:
 
 def summary(out: Path, top: int = 25) -> str:
     tests, programs, wall = {}, collections.defaultdict(collections.Counter), {}
+    spans = {}  # worker -> (first test's start, last test's end)
     for path in sorted(out.glob("*.json")):
         d = json.loads(path.read_text())
         tests.update(d["tests"])
         wall.update(d["wall"])
+        ends = list(d.get("span", {}).values())
+        if ends:
+            spans[d.get("worker", path.stem)] = (min(e[0] for e in ends), max(e[1] for e in ends))
         for k, v in d["programs"].items():
             programs[k].update(v)
     total = collections.Counter()
@@ -120,6 +132,14 @@ def summary(out: Path, top: int = 25) -> str:
     ]
     for k, v in sorted(programs.items(), key=lambda kv: -kv[1]["compile"])[:top]:
         lines.append(f"  {v['compile']:8.1f} {v['n']:6.0f}  {k}")
+    lines += ["", "programs by tracing time (s; outermost traces only):"]
+    for k, v in sorted(programs.items(), key=lambda kv: -kv[1]["trace"])[:top]:
+        lines.append(f"  {v['trace']:8.1f}  {k}")
+    if spans:
+        t0, t1 = min(a for a, _ in spans.values()), max(b for _, b in spans.values())
+        lines += ["", f"workers (s from the first test's start; the last ends at {t1 - t0:.0f}):"]
+        for w, (a, b) in sorted(spans.items()):
+            lines.append(f"  {w}: first test {a - t0:6.1f}, last ends {b - t0:6.1f}")
     lines += ["", "tests by wall time (s; compile, trace, compiled programs):"]
     for t in sorted(wall, key=wall.get, reverse=True)[:top]:
         v = tests.get(t, {})
