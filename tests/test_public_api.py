@@ -199,3 +199,18 @@ def test_forward_result_code_is_deprecated_in_favour_of_results(table):
     with pytest.warns(DeprecationWarning, match="RESULTS"):
         code = np.asarray(res.code)
     assert code[0] == 0 and code[1] != 0
+
+
+def test_import_leaves_the_heavy_libraries_to_the_calls_that_need_them():
+    """`import jaxtable` (every command-line run, every study) imports neither matplotlib
+    (figures), emcee (the posterior) nor scipy.stats (a few tests' p-values): ~1.5 s of
+    imports that a run which does not use them would otherwise spend."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, jaxtable; "
+        "print(' '.join(m for m in ('matplotlib', 'emcee', 'scipy.stats') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "", out.stdout

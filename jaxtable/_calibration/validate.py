@@ -21,7 +21,6 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from scipy.stats import t as t_dist
 
 from .. import _params as params
 from .._api import forward_solve
@@ -549,6 +548,8 @@ def time_trend(residual: np.ndarray, time: np.ndarray) -> tuple | None:
     `residual` (M, 6, NaN = not measured) that departs most surely from flat: the slope's
     t test (M − 2 dof, its scatter from the residuals about the line), Bonferroni over the
     columns tested (those with `TREND_MIN_ROWS` values or more); None when none is."""
+    from scipy.stats import t as t_dist  # here: `import jaxtable` would spend ~0.6 s on it
+
     best = None
     tested = 0
     for k in range(residual.shape[1]):
