@@ -2,12 +2,9 @@ import contextlib
 import os
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
-from threadpoolctl import threadpool_limits
 
-jax.config.update("jax_enable_x64", True)
 # Share compiled programs between the test workers (pytest-xdist) and between runs: JAX's
 # persistent compilation cache, in the (git-ignored) pytest cache directory.
 # The command line (main() called in tests) turns the cache on where JAXTABLE_CACHE_DIR says.
@@ -18,20 +15,44 @@ CACHE = Path(
 )
 os.environ["JAXTABLE_CACHE_DIR"] = str(CACHE)
 
-import jaxtable as jt  # noqa: E402
-
-# the library's own rule (jaxtable/_cache.py): every program stored, and a size limit, which
-# makes JAX lock the directory around every read and write (a worker could otherwise read
-# an entry the other is still writing and crash)
-jt.enable_compilation_cache(CACHE)
-
 # BLAS pools at one thread in the test workers: two workers share two cores, and many tests
 # call internal fitting code that jaxtable's public functions would otherwise run at one
 # thread (jaxtable/_threads.py; with two-thread pools the suite took 2.4x as long). The
 # environment carries it to the subprocesses (studies, the command line, scale-out workers).
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
-threadpool_limits(limits=1, user_api="blas")
+
+
+def _hands_out_tests_only(config) -> bool:
+    """Whether this process is pytest-xdist's controller, which hands the tests to the
+    workers and runs none of them."""
+    if hasattr(config, "workerinput"):
+        return False
+    try:
+        workers = config.getoption("numprocesses")
+    except ValueError:  # xdist not loaded
+        return False
+    return bool(workers) and not config.getoption("collectonly")
+
+
+def pytest_configure(config):
+    """float64, the compilation cache and one-thread BLAS pools in every process that runs
+    tests. Not in xdist's controller: importing jaxtable there (~4 s with the annotation
+    checks' instrumentation) would only delay the workers' start."""
+    if _hands_out_tests_only(config):
+        return
+    import jax
+    from threadpoolctl import threadpool_limits
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxtable as jt
+
+    # the library's own rule (jaxtable/_cache.py): every program stored, and a size limit,
+    # which makes JAX lock the directory around every read and write (a worker could
+    # otherwise read an entry the other is still writing and crash)
+    jt.enable_compilation_cache(CACHE)
+    threadpool_limits(limits=1, user_api="blas")
+
 
 # Workspace box used by the tests (mm, rad): the reference table's combined-motion box.
 BOX = np.array([100.0, 100.0, 50.0, np.deg2rad(7.5), np.deg2rad(7.5), np.deg2rad(10.0)])
@@ -41,6 +62,8 @@ def quick_jit(fun, **kw):
     """`jax.jit` compiling with the options jaxtable compiles its own programs with
     (`_jit.compiler_options`, XLA's classic CPU emitters): a test's jitted check of a large
     program compiles as quickly as the library's programs do."""
+    import jax
+
     from jaxtable._jit import compiler_options
 
     return jax.jit(fun, compiler_options=compiler_options(), **kw)
@@ -65,8 +88,31 @@ def compiled_programs():
         jax.monitoring.unregister_event_duration_listener(listen)
 
 
+# Modules of short tests (each well under a second or two): they run last, so that the two
+# test workers (pytest-xdist hands out tests in collection order) both end on short tests
+# instead of one waiting on the other's last long one (the studies, last in name order, left
+# one core idle for 21 s at the end of a profiled run).
+LAST = (
+    "test_batch.py",
+    "test_cache.py",
+    "test_effects.py",
+    "test_params.py",
+    "test_reference_table.py",
+    "test_rotation.py",
+    "test_table_io.py",
+    "test_threads.py",
+    "test_tracecache.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    items.sort(key=lambda item: item.path.name in LAST)  # stable: the rest in name order
+
+
 @pytest.fixture(scope="session")
 def table():
+    import jaxtable as jt
+
     return jt.reference_table()
 
 

@@ -76,8 +76,8 @@ def test_the_fit_stops_at_the_optimum_of_a_long_run(planted):
     of legs with nothing of their own fall towards zero without bound (no prior), so plain
     BFGS runs on while the objective no longer moves. Its optimum is the one plain
     BFGS reaches in many more steps, and the same to 1e-5 in the log evidence."""
-    import jax
     import optimistix as optx
+    from conftest import quick_jit
 
     from jaxtable._discovery import gp as G
 
@@ -96,7 +96,7 @@ def test_the_fit_stops_at_the_optimum_of_a_long_run(planted):
     finally:
         G._fit_hyper = orig
 
-    @jax.jit
+    @quick_jit
     def plain(h0, args):
         solver = optx.BFGS(rtol=1e-6, atol=1e-6)
         sol = optx.minimise(G._neg_log_posterior, solver, h0, args, max_steps=1000, throw=False)

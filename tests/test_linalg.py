@@ -2,6 +2,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import quick_jit
 
 from jaxtable._linalg import (
     cond_small,
@@ -17,7 +18,7 @@ from jaxtable._linalg import (
 def test_small_kernels_match_numpy():
     # eagerly, every op compiles on its own (~3000 in cond_small)
     cond, solve, inv, matmul = (
-        jax.jit(f) for f in (cond_small, solve_small, inv_small, matmul_small)
+        quick_jit(f) for f in (cond_small, solve_small, inv_small, matmul_small)
     )
     rng = np.random.default_rng(0)
     for _ in range(20):
@@ -89,7 +90,7 @@ def test_condition_number_to_its_promise_and_inf_when_singular():
     1e-14 cond² (its promise; JᵀJ squares the condition) up to 10⁵ whatever the ties at
     either end, and inf for a condition number of 10⁸ or an exactly singular matrix."""
     rng = np.random.default_rng(5)
-    cond = jax.jit(jax.vmap(cond_small))
+    cond = quick_jit(jax.vmap(cond_small))
     J, want = [], []
     for c in (1.0, 3.0, 1e2, 1e3, 1e4, 1e5):
         for sv in (
@@ -136,14 +137,14 @@ def test_inverse_by_normal_equations_to_its_promise():
     that looks right, for a singular matrix."""
     rng = np.random.default_rng(6)
     A = rng.normal(size=(500, 6, 6)) * rng.uniform(0.1, 10, (500, 1, 6))  # columns scaled
-    got = np.asarray(jax.jit(jax.vmap(inv_normal_small))(A))
+    got = np.asarray(quick_jit(jax.vmap(inv_normal_small))(A))
     ref = np.linalg.inv(A)
     err = np.abs(got - ref).max((1, 2)) / np.abs(ref).max((1, 2))
     c = np.linalg.cond(A)
     assert np.all(err < 1e-15 * c**2 + 1e-15), np.c_[c, err][err >= 1e-15 * c**2 + 1e-15]
     singular = A[0].copy()
     singular[:, 5] = singular[:, 4]
-    assert np.isnan(np.asarray(jax.jit(inv_normal_small)(singular))).any()
+    assert np.isnan(np.asarray(quick_jit(inv_normal_small)(singular))).any()
 
 
 def test_solve_is_linear_in_b_for_reverse_mode():
