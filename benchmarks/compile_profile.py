@@ -96,7 +96,9 @@ def _library_functions() -> frozenset:
     )
 
 
-def _eager(name: str) -> bool:
+def is_eager_operation(name: str) -> bool:
+    """Whether a program's name ("jit(add)") is a single jax.numpy / lax operation run
+    eagerly, op by op, rather than a compiled function."""
     import jax.lax
     import jax.numpy as jnp
 
@@ -121,7 +123,7 @@ def summary(out: Path, top: int = 25) -> str:
     total = collections.Counter()
     for v in tests.values():
         total.update(v)
-    eager = [v for k, v in programs.items() if _eager(k)]
+    eager = [v for k, v in programs.items() if is_eager_operation(k)]
     lines = [
         f"{len(wall)} tests, {sum(wall.values()):.0f} worker-s in tests; XLA compile "
         f"{total['compile']:.0f} s ({total['compile_n']:.0f} programs), tracing "

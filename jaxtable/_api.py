@@ -28,7 +28,7 @@ from ._errors import (
     require_x64,
 )
 from ._forward import CHORD_BELOW, RESULTS, ForwardOptions, forward_one
-from ._jit import LARGE_BATCH
+from ._jit import LARGE_BATCH, device_array
 from ._model import inverse_extension
 from ._table import Table
 
@@ -38,7 +38,7 @@ def per_pose(fn, table: Table, poses, chunk: int):
     check_finite_poses(poses)
     flat, batch_shape = flatten_batch(poses, 1)
     out = run_batch(fn, table, flat, chunk=chunk)
-    return jax.tree.map(lambda o: jnp.asarray(o).reshape(batch_shape + o.shape[1:]), out)
+    return jax.tree.map(lambda o: device_array(o, batch_shape + np.shape(o)[1:]), out)
 
 
 def leg_lengths(table: Table, poses, *, chunk: int = 1 << 16) -> Float[ArrayLike, "... 6"]:
@@ -73,13 +73,14 @@ def pose_error(actual, commanded) -> Float[ArrayLike, "... 6"]:
     translation difference (mm) and the rotation vector of R(actual) R(commanded)ᵀ (rad,
     base frame), (..., 6). jaxtable's one pose-error measure (see `_rotation.pose_error`)."""
     require_x64()
-    a = jnp.asarray(actual, dtype=jnp.float64)
-    c = jnp.asarray(commanded, dtype=jnp.float64)
-    shape = jnp.broadcast_shapes(a.shape, c.shape)
+    xp = np if is_concrete(actual, commanded) else jnp  # numpy: no eager programs
+    a = xp.asarray(actual, dtype=np.float64)
+    c = xp.asarray(commanded, dtype=np.float64)
+    shape = np.broadcast_shapes(a.shape, c.shape)
     if shape[-1:] != (6,):
         raise ValueError(f"poses must have shape (..., 6); got {a.shape} and {c.shape}")
-    a, c = (jnp.broadcast_to(x, shape).reshape(-1, 6) for x in (a, c))
-    return jnp.asarray(run_batch(_pose_error_row, None, (a, c))).reshape(shape)
+    a, c = (xp.broadcast_to(x, shape).reshape(-1, 6) for x in (a, c))
+    return device_array(run_batch(_pose_error_row, None, (a, c)), shape)
 
 
 def _pose_error_row(_, row):
@@ -182,12 +183,10 @@ def actuator_command(
     eff = resolve_effects(table, effects) if compensated else {}
     flat, batch_shape = flatten_batch(poses, 1)
     shared_ctx, row_ctx = split_context(flat.shape[0], context)
-    cmd = jnp.asarray(
-        run_batch(_command_row, (table, eff, shared_ctx), (flat, row_ctx), chunk=chunk)
-    )
+    cmd = run_batch(_command_row, (table, eff, shared_ctx), (flat, row_ctx), chunk=chunk)
     if check:
         _check_stroke(table, cmd, batch_shape, "commanded leg length(s)")
-    return cmd.reshape(batch_shape + (6,))
+    return device_array(cmd, batch_shape + (6,))
 
 
 class ForwardResult(eqx.Module):
@@ -204,6 +203,9 @@ class ForwardResult(eqx.Module):
     @property
     def ok(self):
         """Boolean (...): the solve converged to a physical pose within tolerance."""
+        if is_concrete(self.result):  # in numpy: an eager comparison compiles per shape
+            (code,), (success,) = jax.tree.leaves(self.result), jax.tree.leaves(RESULTS.successful)
+            return device_array(np.asarray(code) == np.asarray(success))
         return self.result == RESULTS.successful
 
     def reason(self, i: int) -> str:
@@ -262,14 +264,15 @@ def forward_solve(
     check_finite_lengths(commands)
     eff = resolve_effects(table, effects)
     flat, batch_shape = flatten_batch(commands, 1)
-    s = flat - (table if nominal is None else nominal).zero_lengths
+    zero = (table if nominal is None else nominal).zero_lengths
+    s = flat - (np.asarray(zero) if is_concrete(flat, zero) else zero)  # numpy where concrete
     n = flat.shape[0]
     large = n >= LARGE_BATCH  # smaller batches: plain Newton, the quickest to compile
     if guess is None:
-        guess = jnp.zeros(6)
+        guess = np.zeros(6)
     else:
         check_finite_poses(guess, "guess")
-        guess = jnp.asarray(guess, dtype=jnp.float64)
+        guess = (np if is_concrete(guess) else jnp).asarray(guess, dtype=np.float64)
     if guess.ndim > 1 or not large:  # per row; a small batch's always, as its context
         # (`split_context`): one compiled kernel whatever their kinds. numpy where concrete:
         # an eager jnp op compiles a program per shape
@@ -288,10 +291,10 @@ def forward_solve(
     )
     pose, result, steps, resid = out
     return ForwardResult(
-        jnp.asarray(pose).reshape(batch_shape + (6,)),
-        jax.tree.map(lambda v: jnp.reshape(v, batch_shape), result),
-        jnp.asarray(steps).reshape(batch_shape),
-        jnp.asarray(resid).reshape(batch_shape),
+        device_array(pose, batch_shape + (6,)),
+        jax.tree.map(lambda v: device_array(v, batch_shape), result),
+        device_array(steps, batch_shape),
+        device_array(resid, batch_shape),
     )
 
 

@@ -73,8 +73,10 @@ def map_batch(fn, *xs, chunk: int = DEFAULT_CHUNK):
 
 
 def flatten_batch(x, tail: int):
-    """Reshape (..., *tail_shape) -> (N, *tail_shape); returns (flat, batch_shape)."""
-    x = jnp.asarray(x, dtype=jnp.float64)
+    """Reshape (..., *tail_shape) -> (N, *tail_shape); returns (flat, batch_shape). float64;
+    numpy where `x` is concrete (no eager programs: `_jit.device_array`), else jnp."""
+    xp = np if is_concrete(x) else jnp
+    x = xp.asarray(x, dtype=np.float64)
     batch_shape = x.shape[: x.ndim - tail]
     return x.reshape((-1,) + x.shape[x.ndim - tail :]), batch_shape
 

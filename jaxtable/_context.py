@@ -7,7 +7,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 
 from ._errors import is_concrete
-from ._jit import LARGE_BATCH
+from ._jit import LARGE_BATCH, device_array
 
 REFERENCE_TEMPERATURE = 20.0  # °C
 
@@ -34,14 +34,17 @@ class Context(eqx.Module):
     def __init__(
         self, direction=1.0, temperature=REFERENCE_TEMPERATURE, payload=0.0, session=0, time=0.0
     ):
-        direction = jnp.asarray(direction, dtype=jnp.float64)
+        # numpy where concrete (`_jit.device_array`): eagerly, each conversion or broadcast
+        # compiled a program of its own
+        xp = np if is_concrete(direction) else jnp
+        direction = xp.asarray(direction, dtype=np.float64)
         if direction.ndim == 0:
-            direction = jnp.broadcast_to(direction, (6,))
-        self.direction = direction
-        self.temperature = jnp.asarray(temperature, dtype=jnp.float64)
-        self.payload = jnp.asarray(payload, dtype=jnp.float64)
-        self.session = jnp.asarray(session, dtype=jnp.int32)
-        self.time = jnp.asarray(time, dtype=jnp.float64)
+            direction = xp.broadcast_to(direction, (6,))
+        self.direction = device_array(direction)
+        self.temperature = device_array(temperature, dtype=np.float64)
+        self.payload = device_array(payload, dtype=np.float64)
+        self.session = device_array(session, dtype=np.int32)
+        self.time = device_array(time, dtype=np.float64)
 
 
 def batch_context(n: int, context: "Context | None" = None) -> Context:

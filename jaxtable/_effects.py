@@ -39,16 +39,19 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._context import REFERENCE_TEMPERATURE, Context
 from ._errors import is_concrete
+from ._jit import device_array
 from ._kinematics import leg_lines, rod_rotation
 from ._linalg import solve_small
 from ._rotation import rotation_matrix
-from ._table import Table
+from ._table import Table, _f64
 
 GRAVITY = 9.80665  # m/s²
 
 
 def _legs(x) -> Array:
-    return jnp.broadcast_to(jnp.asarray(x, dtype=jnp.float64), (6,))
+    """One value per leg (6,), float64: a scalar is every leg's (no eager programs where
+    concrete: `_table._f64`)."""
+    return _f64(x, (6,))
 
 
 class AbstractEffect(eqx.Module):
@@ -268,7 +271,7 @@ class Rehoming(AbstractEffect):
     source: ClassVar[str] = "repeatability of a homing switch plus index pulse: 5-50 µm per leg"
 
     def __init__(self, offsets=np.zeros((0, 6))):
-        self.offsets = jnp.asarray(offsets, dtype=jnp.float64).reshape(-1, 6)
+        self.offsets = _reshaped(offsets, (-1, 6))
 
     @classmethod
     def null(cls, n_sessions: int = 1) -> "Rehoming":
@@ -285,7 +288,14 @@ EFFECTS: dict[str, type[AbstractEffect]] = {
 
 
 def _shared(x) -> Array:
-    return jnp.asarray(x, dtype=jnp.float64).reshape(())
+    return _reshaped(x, ())
+
+
+def _reshaped(x, shape) -> Array:
+    """`x` as float64, reshaped to `shape` (numpy where concrete: no eager programs)."""
+    if is_concrete(x):
+        return device_array(np.asarray(x, dtype=np.float64), shape)
+    return jnp.asarray(x, dtype=jnp.float64).reshape(shape)
 
 
 class Discovered(AbstractEffect):
@@ -364,13 +374,15 @@ class Discovered(AbstractEffect):
         self.s2_all, self.s3_all, self.ds_all, self.Ts_all, self.t_all = map(
             _shared, (s2_all, s3_all, ds_all, Ts_all, t_all)
         )
-        cross = jnp.asarray(cross, dtype=jnp.float64).reshape(6, 6)
-        self.cross = cross * (1.0 - jnp.eye(6))  # no self-crosstalk: that is lead_scale
+        xp = np if is_concrete(cross) else jnp  # numpy where concrete: no eager programs
+        cross = _reshaped(cross, (6, 6))
+        xp = np if is_concrete(cross) else jnp  # numpy where concrete: no eager programs
+        self.cross = _f64(xp.asarray(cross) * (1.0 - np.eye(6)))  # no self-crosstalk (lead_scale)
         self.cross_all = _legs(cross_all)
-        self.session_s = jnp.asarray(session_s, dtype=jnp.float64).reshape(-1, 6)
+        self.session_s = _reshaped(session_s, (-1, 6))
         n = self.session_s.shape[0]
         all_ = np.zeros(n) if session_s_all is None else session_s_all
-        self.session_s_all = jnp.asarray(all_, dtype=jnp.float64).reshape(n)
+        self.session_s_all = _reshaped(all_, (n,))
 
     @classmethod
     def null(cls, n_sessions: int = 1) -> "Discovered":

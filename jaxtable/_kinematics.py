@@ -10,11 +10,12 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._errors import is_concrete
+from ._jit import device_array
 from ._linalg import computed_once
 from ._rotation import rotation_entries, rotation_matrix
 from ._table import Table
 
-HOME = jnp.zeros(6)
+HOME = device_array(np.zeros(6))
 
 # Six 3-vectors are carried as a tuple of components (x, y, z), each of shape (6,): under
 # `vmap` every operation below is then elementwise on (N, 6) arrays, which XLA fuses into one

@@ -6,10 +6,17 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._errors import TableFileError, is_concrete
+from ._jit import device_array
 
 
-def _f64(x) -> Array:
-    return jnp.asarray(x, dtype=jnp.float64)
+def _f64(x, shape=None) -> Array:
+    """`x` as a float64 array (broadcast to `shape`, if given); in numpy where concrete
+    (`_jit.device_array`: no eager programs)."""
+    if is_concrete(x):
+        a = np.asarray(x, dtype=np.float64)
+        return device_array(a if shape is None or a.shape == shape else np.broadcast_to(a, shape))
+    x = jnp.asarray(x, dtype=jnp.float64)
+    return x if shape is None else jnp.broadcast_to(x, shape)
 
 
 class Table(eqx.Module):
@@ -71,8 +78,8 @@ class Table(eqx.Module):
         self.platform_axes = _f64(platform_axes)
         self.home_height = _f64(home_height)
         self.stroke = _f64(stroke)
-        self.lead = jnp.broadcast_to(_f64(lead), (6,))
-        self.hand = jnp.broadcast_to(_f64(hand), (6,))
+        self.lead = _f64(lead, (6,))
+        self.hand = _f64(hand, (6,))
         self.joint_angle_limit = _f64(joint_angle_limit)
         self.platform_mass = _f64(platform_mass)
         self.platform_cog = _f64(platform_cog)
@@ -102,11 +109,17 @@ class Table(eqx.Module):
     @property
     def signed_lead(self) -> Float[ArrayLike, "6"]:
         """hand · lead, mm/rev: positive for a right-hand screw, negative for a left-hand one."""
+        if is_concrete(self.hand, self.lead):  # numpy: no eager program
+            return device_array(np.asarray(self.hand) * np.asarray(self.lead))
         return self.hand * self.lead
 
 
 def home_leg_vectors(table: Table) -> Float[ArrayLike, "6 3"]:
     """l_i at the home pose, base frame, mm. Shape (6, 3)."""
+    parts = (table.home_height, table.platform_joints, table.base_joints)
+    if is_concrete(*parts):  # numpy: no eager programs (the same sums, exactly)
+        h, a, b = (np.asarray(x) for x in parts)
+        return device_array(np.array([0.0, 0.0, 1.0]) * h + a - b)
     t = jnp.array([0.0, 0.0, 1.0]) * table.home_height
     return t + table.platform_joints - table.base_joints
 

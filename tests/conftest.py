@@ -1,5 +1,6 @@
 import contextlib
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,10 @@ CACHE = Path(
     or Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"
 )
 os.environ["JAXTABLE_CACHE_DIR"] = str(CACHE)
+
+# the checkout's benchmarks/ importable (the compile profile's `is_eager_operation`, the
+# baselines), however pytest was started
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # BLAS pools at one thread in the test workers: two workers share two cores, and many tests
 # call internal fitting code that jaxtable's public functions would otherwise run at one
@@ -70,15 +75,18 @@ def quick_jit(fun, **kw):
 
 
 @contextlib.contextmanager
-def compiled_programs():
+def compiled_programs(stage: str = "backend_compile"):
     """The names of the programs compiled (or read from the persistent cache) inside the
-    `with` block, as JAX's compile events report them, e.g. "jit(_vmap__design_row)"."""
+    `with` block, as JAX's compile events report them, e.g. "jit(_vmap__design_row)".
+    `stage="jaxpr_to_mlir_module"`: the programs lowered, i.e. every program this process
+    had not run at those shapes before, whether XLA then compiles it or the persistent
+    cache holds it."""
     import jax.monitoring
 
     names = []
 
     def listen(event, duration, fun_name="?", **_):
-        if event == "/jax/core/compile/backend_compile_duration":
+        if event == f"/jax/core/compile/{stage}_duration":
             names.append(fun_name)
 
     jax.monitoring.register_event_duration_secs_listener(listen)

@@ -646,3 +646,39 @@ def test_structure_left_on_too_few_stops_for_the_gp_is_said_not_raised():
     diag = diagnose(nominal, data, log=said.append, library=[], discover=False, folds=11)
     assert diag.unexplained and diag.residual_model is None
     assert any("too few stops for a GP residual model (20: it needs 22" in s for s in said), said
+
+
+def test_data_of_a_new_size_run_no_eager_operations():
+    """Simulating, fitting and diagnosing data of a size no other test uses, and the batch
+    APIs on it, lower no single jax.numpy operation run eagerly (each would compile a
+    program for that size: ~20 ms from an empty cache, a third of a second for the ~60 a
+    first `jaxtable diagnose` ran before they were taken out)."""
+    from conftest import compiled_programs
+
+    from benchmarks.compile_profile import is_eager_operation
+
+    n = 67
+    nominal = _nominal()
+    true = perturb_table(nominal, 3, joint_sigma=0.010, zero_sigma=0.050)
+    eff = {"spiral": jt.Spiral(12.7), "backlash": jt.Backlash(np.full(6, 0.02))}
+    temperature = 20 + 10 * np.arange(n) / n
+    with compiled_programs("jaxpr_to_mlir_module") as lowered:
+        data = simulate(
+            nominal,
+            true,
+            plan_random(n, 3),
+            tracker6(),
+            effects=eff,
+            seed=3,
+            temperature=temperature,
+        )
+        jt.calibrate(nominal, data)
+        diagnose(nominal, data, log=_quiet)
+        cmd = jt.actuator_command(nominal, data.cmd_pose)
+        res = jt.forward_solve(nominal, cmd)
+        np.testing.assert_allclose(np.asarray(res.pose), data.cmd_pose, atol=1e-9)
+        assert bool(np.all(np.asarray(res.ok)))
+        jt.pose_error(res.pose, data.cmd_pose)
+        jt.leg_lengths(nominal, data.cmd_pose)
+    eager = [name for name in lowered if is_eager_operation(name)]
+    assert eager == [], eager

@@ -124,3 +124,33 @@ def test_a_fit_gives_the_same_result_either_way(table, monkeypatch):
     assert abs(quick.steps - default.steps) <= 1
     np.testing.assert_allclose(quick.value, default.value, rtol=0, atol=1e-9)
     np.testing.assert_allclose(quick.covariance, default.covariance, rtol=1e-8, atol=1e-18)
+
+
+def test_device_array_places_numpy_without_an_eager_program():
+    """`device_array` gives what `jnp.asarray(x, dtype).reshape(shape)` gives (values,
+    dtype, an uncommitted device array) without lowering a program; a device array of the
+    asked shape and dtype is returned as it is; a traced value goes through jnp."""
+    from conftest import compiled_programs
+
+    from benchmarks.compile_profile import is_eager_operation
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(13, 7))  # a shape no other test uses, so nothing is cached for it
+    n = np.arange(91, dtype=np.int64)
+    with compiled_programs("jaxpr_to_mlir_module") as lowered:
+        a = _jit.device_array(x)
+        b = _jit.device_array(x, (7, 13))
+        c = _jit.device_array(n, (13, 7), dtype=np.int32)
+    assert lowered == [], lowered
+    for got, want in ((a, x), (b, x.reshape(7, 13)), (c, n.reshape(13, 7).astype(np.int32))):
+        assert isinstance(got, jax.Array) and not got.committed
+        assert got.dtype == want.dtype and got.shape == want.shape
+        np.testing.assert_array_equal(np.asarray(got), want)
+    assert _jit.device_array(a) is a and _jit.device_array(a, (13, 7)) is a
+    # the same call eagerly through jnp lowers a program for the shape (what it replaces)
+    with compiled_programs("jaxpr_to_mlir_module") as lowered:
+        jnp.asarray(x)
+    assert any(is_eager_operation(name) for name in lowered), lowered
+    traced = jax.jit(lambda v: _jit.device_array(v, (7, 13), dtype=np.float32))(x)
+    assert traced.dtype == np.float32
+    np.testing.assert_allclose(np.asarray(traced), x.reshape(7, 13), rtol=1e-7)

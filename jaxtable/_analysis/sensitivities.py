@@ -20,6 +20,7 @@ from .. import _params as params
 from .._batch import flatten_batch, run_batch
 from .._effects import Effects, resolve_effects
 from .._errors import check_finite_poses, require_x64
+from .._jit import device_array
 from .._kinematics import (
     HOME,
     _columns,
@@ -179,8 +180,8 @@ def pose_sensitivity(
     names = parameter_names(model, wrt)
     flat, batch_shape = flatten_batch(poses, 1)
     shared = (table, None if effects is None else dict(effects), wrt, rotation_vector)
-    J = jnp.asarray(run_batch(_sensitivity_row, shared, flat, chunk=chunk))
-    return J.reshape(batch_shape + J.shape[1:]), names
+    J = run_batch(_sensitivity_row, shared, flat, chunk=chunk)
+    return device_array(J, batch_shape + np.shape(J)[1:]), names
 
 
 def paper_error_jacobian_one(table: Table, pose: Float[ArrayLike, "6"]) -> Float[ArrayLike, "6 42"]:

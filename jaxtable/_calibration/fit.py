@@ -32,9 +32,9 @@ from .._api import actuator_command
 from .._batch import _in_pieces, _pad_rows, _pool, _slice_rows, cpu_workers
 from .._context import Context, directions, run_time
 from .._effects import resolve_effects
-from .._errors import POSE_COLUMNS, KinematicsError, TableFileError
+from .._errors import POSE_COLUMNS, KinematicsError, TableFileError, is_concrete
 from .._forward import RESULTS, ForwardOptions, forward_one
-from .._jit import jit
+from .._jit import device_array, jit
 from .._kinematics import in_stroke
 from .._rotation import (
     best_rotation,
@@ -161,28 +161,44 @@ def build_model(problem: Problem, layout: Layout, theta):
     table and effects moved by θ's steps, the instrument frame of each session and its
     drift over the file's time (zeros unless `layout.frame_drift`)."""
     table, effects = problem.start, problem.effects
+    # in numpy where nothing is traced (the fitted model a fit reports): eagerly, each jnp
+    # operation below compiled a program of its own
+    concrete = is_concrete(table, effects, theta, problem.bases)
+    xp = np if concrete else jnp
     changes = {}
     for name in layout.free:
-        step = theta[name]
+        step = xp.asarray(theta[name])
         if name in params.JOINTS:
-            step = (problem.bases[name] @ step).reshape(6, 3)
+            step = (xp.asarray(problem.bases[name]) @ step).reshape(6, 3)
         leaf = params.leaf(name)  # a shared parameter's scalar step moves every leg's value
-        changes[leaf] = changes.get(leaf, params.get(table, effects, leaf)) + step
+        start = changes[leaf] if leaf in changes else xp.asarray(params.get(table, effects, leaf))
+        changes[leaf] = start + step
+    if concrete:
+        changes = {k: device_array(v) for k, v in changes.items()}
     table, effects = params.replace(table, effects, changes)
-    frame = (
-        jnp.zeros((layout.n_sessions, 6)).at[:, np.array(layout.frame_dofs)].set(theta["frame"])
-        if layout.frame_dofs
-        else jnp.zeros((layout.n_sessions, 6))
+    frame = _placed(xp, (layout.n_sessions, 6), layout.frame_dofs, theta.get("frame"))
+    target = _placed(xp, (6,), layout.target_dofs, theta.get("target"))
+    drift = _placed(
+        xp,
+        (layout.n_sessions, 6),
+        layout.frame_dofs if layout.frame_drift else (),
+        theta.get("frame_drift"),
     )
-    target = (
-        jnp.zeros(6).at[np.array(layout.target_dofs)].set(theta["target"])
-        if layout.target_dofs
-        else jnp.zeros(6)
-    )
-    drift = jnp.zeros((layout.n_sessions, 6))
-    if layout.frame_drift and layout.frame_dofs:
-        drift = drift.at[:, np.array(layout.frame_dofs)].set(theta["frame_drift"])
+    if concrete:
+        frame, target, drift = (device_array(x) for x in (frame, target, drift))
     return table, effects, frame, target, drift
+
+
+def _placed(xp, shape: tuple, dofs: tuple, values):
+    """Zeros of `shape` with `values` in the columns `dofs` of the last axis (zeros alone
+    where there are no `dofs`), with `xp` = numpy or jax.numpy."""
+    if not dofs:
+        return xp.zeros(shape)
+    if xp is np:
+        out = np.zeros(shape)
+        out[..., list(dofs)] = np.asarray(values)
+        return out
+    return jnp.zeros(shape).at[..., np.array(dofs)].set(values)
 
 
 def _rows(problem: Problem):
@@ -286,7 +302,7 @@ def _unflat(theta: dict, flat) -> dict:
     for key in sorted(theta):
         shape = np.shape(theta[key])
         n = int(np.prod(shape))
-        out[key] = jnp.asarray(np.reshape(flat[at : at + n], shape))
+        out[key] = device_array(flat[at : at + n], shape)
         at += n
     return out
 
@@ -334,7 +350,7 @@ def _make_canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
         if rows.size:
             spans.append((j, j + n, int(rows[0]), int(rows[-1]) + 1, pick))
         j += n
-    return _Canonical(lay, jax.tree.map(jnp.asarray, template), embed, tuple(spans))
+    return _Canonical(lay, jax.tree.map(device_array, template), embed, tuple(spans))
 
 
 _PLAIN_BASES = {n: np.eye(18) for n in JOINTS}
@@ -362,7 +378,7 @@ def _padded_effects(effects: dict, n_sessions: int) -> dict:
             for f in grow:
                 v = np.asarray(getattr(e, f))
                 extra = sizes[f][1][0] - v.shape[0]
-                padded.append(jnp.asarray(np.concatenate([v, np.zeros((extra,) + v.shape[1:])])))
+                padded.append(device_array(np.concatenate([v, np.zeros((extra,) + v.shape[1:])])))
             e = eqx.tree_at(lambda m: [getattr(m, f) for f in grow], e, padded)
         out[name] = e
     return out
@@ -393,7 +409,7 @@ def _stop_blocks(problem: Problem, layout: Layout, rows: int = FIT_BLOCK) -> lis
     per_stop = jax.tree.map(np.asarray, _rows(problem))
     plain = dataclasses.replace(
         problem,
-        bases=jax.tree.map(jnp.asarray, _PLAIN_BASES),
+        bases=jax.tree.map(device_array, _PLAIN_BASES),
         effects=_padded_effects(problem.effects, layout.n_sessions),
     )
     blocks = []
@@ -401,7 +417,7 @@ def _stop_blocks(problem: Problem, layout: Layout, rows: int = FIT_BLOCK) -> lis
         k = min(rows, n - start)
         chunk = list(_pad_rows(_slice_rows(per_stop, start, start + rows), rows))
         chunk[5] = np.where(np.arange(rows)[:, None] < k, chunk[5], 0.0)  # the weight
-        s, guess, session, ctx, measured, weight = jax.tree.map(jnp.asarray, tuple(chunk))
+        s, guess, session, ctx, measured, weight = jax.tree.map(device_array, tuple(chunk))
         block = dataclasses.replace(
             plain, s=s, guess=guess, session=session, ctx=ctx, measured=measured, weight=weight
         )
@@ -492,7 +508,7 @@ def jacobian_in_chunks(
     (a fit evaluates each step on the same blocks)."""
     flat = _flat(theta) if flat is None else np.asarray(flat)
     can = _canonical(problem, layout, theta)
-    flat_c = jnp.asarray(can.embed @ flat)
+    flat_c = device_array(can.embed @ flat)
     blocks = _stop_blocks(problem, layout, rows) if blocks is None else blocks
     out = _in_blocks(blocks, lambda b: _block_jacobian(b, can.layout, can.template, flat_c))
     J_c, r, solved = (_joined([o[i] for o in out], blocks, m) for i, m in ((0, 6), (1, 6), (2, 1)))
@@ -1190,12 +1206,14 @@ def sigma_rms(weighted: np.ndarray, mask: np.ndarray) -> float:
 
 def zero_steps(nominal: Table, effects: dict, free, bases: dict) -> dict:
     """θ0: a zero step for every free parameter block (joint sets in their basis)."""
-    return {
-        name: jnp.zeros(bases[name].shape[1])
-        if name in params.JOINTS
-        else jnp.zeros(())
-        if params.is_shared(name)
-        else jnp.zeros_like(params.get(nominal, effects, name))
+    return {  # zeros made in numpy (an eager jnp.zeros compiles a program per shape)
+        name: device_array(
+            np.zeros(bases[name].shape[1])
+            if name in params.JOINTS
+            else np.zeros(())
+            if params.is_shared(name)
+            else np.zeros(np.shape(params.get(nominal, effects, name)))
+        )
         for name in free
     }
 
@@ -1341,12 +1359,12 @@ def make_problem(
         nominal=nominal,
         start=nominal,
         effects=effects,
-        s=jnp.asarray(cmd - np.asarray(nominal.zero_lengths)),
-        guess=jnp.asarray(data.cmd_pose),
-        measured=jnp.asarray(np.where(mask, data.measured, 0.0)),
-        weight=jnp.asarray(np.where(mask, 1.0 / np.where(mask, sigma, 1.0), 0.0)),
-        session=jnp.asarray(data.session_index),
-        bases={n: jnp.asarray(b) for n, b in bases.items()},
+        s=device_array(cmd - np.asarray(nominal.zero_lengths)),
+        guess=device_array(data.cmd_pose),
+        measured=device_array(np.where(mask, data.measured, 0.0)),
+        weight=device_array(np.where(mask, 1.0 / np.where(mask, sigma, 1.0), 0.0)),
+        session=device_array(data.session_index),
+        bases={n: device_array(b) for n, b in bases.items()},
         ctx=data_context(data, cmd, uses),
     )
 
@@ -1459,11 +1477,11 @@ def setup(
     check_commanded(data, nominal, ik)  # after the stroke check of `make_problem`: more specific
     theta0 = zero_steps(nominal, eff, free, bases)
     if frame_dofs:
-        theta0["frame"] = jnp.asarray(initial_frames(data, frame_dofs)[:, list(frame_dofs)])
+        theta0["frame"] = device_array(initial_frames(data, frame_dofs)[:, list(frame_dofs)])
     if drift:
-        theta0["frame_drift"] = jnp.zeros((len(data.sessions), len(frame_dofs)))
+        theta0["frame_drift"] = device_array(np.zeros((len(data.sessions), len(frame_dofs))))
     if target_dofs:
-        theta0["target"] = jnp.zeros(len(target_dofs))
+        theta0["target"] = device_array(np.zeros(len(target_dofs)))
     keys, labels = parameter_keys(layout, theta0, bases)
     w = None if prior is None else prior_weights(keys, prior)
     return Setup(problem, layout, theta0, keys, mask, eff, labels, noise, w)
@@ -1591,19 +1609,19 @@ def _fit_once(
     """One weighted fit (see `fit`): rows where `use` is False and cells with weight 0 do not
     count; `weight` (N, 6) = 1/σ."""
     problem, layout = st.problem, st.layout
-    problem = dataclasses.replace(problem, weight=jnp.asarray(weight))  # (as `_stop_blocks`)
+    problem = dataclasses.replace(problem, weight=device_array(weight))  # (as `_stop_blocks`)
     theta0 = st.theta0 if theta0 is None else theta0
     flat0 = _flat(theta0)
     fm = np.ones(flat0.shape[0]) if free_mask is None else np.asarray(free_mask, float)
     measured_rows = st.mask.any(axis=1)  # a row with nothing measured is skipped
     if not use.all():
         problem = dataclasses.replace(
-            problem, weight=problem.weight * jnp.asarray(use, float)[:, None]
+            problem, weight=device_array(np.asarray(problem.weight) * use[:, None])
         )
     mask = st.mask & use[:, None]
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
-    args = (problem, layout, theta0, jnp.asarray(fm), rtol, atol, max_steps)
+    args = (problem, layout, theta0, device_array(fm), rtol, atol, max_steps)
     value, converged, steps, J, solved, r0, r = _solve(*args, method, identifiability_tol, st.prior)
     if method == "gauss_newton" and not (bool(converged) and np.all(np.asarray(solved)[use])):
         # the trust region's Gauss-Newton ran out of steps (creeping along a curved valley

@@ -36,7 +36,7 @@ import numpy as np
 from .. import _params as params
 from .._batch import run_batch
 from .._forward import platform_radius
-from .._jit import jit
+from .._jit import device_array, jit
 from .._table import Table
 from .._threads import one_blas_thread
 from .fit import Layout, jacobian_in_chunks, make_problem, setup, zero_steps
@@ -384,9 +384,9 @@ def select(
         )
     eps = ridge * float(np.sum(G**2)) / (M * r)
     order, _, swaps = _greedy_exchange(
-        jnp.asarray(G),
+        device_array(G),
         int(k),
-        jnp.asarray(eps) * jnp.eye(r),
+        device_array(eps * np.eye(r)),
         criterion,
         int(passes) if exchange else 0,
     )

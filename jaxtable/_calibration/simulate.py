@@ -2,7 +2,6 @@
 geometric errors and chosen effects), a controller that commands the nominal inverse
 kinematics, exact forward kinematics of the true table, and a noisy instrument."""
 
-import jax.numpy as jnp
 import numpy as np
 
 from .._analysis.workspaces import Workspace
@@ -10,6 +9,7 @@ from .._api import actuator_command, forward
 from .._batch import run_batch
 from .._context import Context, batch_context, directions, run_time
 from .._errors import renamed_argument
+from .._jit import device_array
 from .._table import Table, replace
 from .instruments import Instrument, observe
 from .measurements import Measurements
@@ -130,7 +130,7 @@ def simulate(
     frames = np.broadcast_to(np.asarray(frame, float), (len(order), 6))
     drift = np.broadcast_to(np.asarray(frame_drift, float), (len(order), 6))
     seen = frames[index] + drift[index] * np.asarray(ctx.time)[:, None]
-    target = jnp.asarray(target, dtype=jnp.float64)
+    target = device_array(target, dtype=np.float64)
     reading = np.asarray(run_batch(_reading, target, (np.asarray(actual), seen)))
     noise = np.nan_to_num(np.asarray(instrument.noise, float))
     reading = reading + noise * np.random.default_rng(seed).normal(size=reading.shape)

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._analysis.errormap import budget_one
@@ -61,7 +62,7 @@ from .._rotation import ARCSEC_PER_RAD, rotation_matrix
 from .._table import Table
 from .hardware import Hardware
 
-HOME = jnp.zeros(6)
+HOME = np.zeros(6)
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from jaxtyping import ArrayLike, Float
 from .._errors import TableFileError
 from .._table import Table
 
-MIRROR = jnp.array([1.0, -1.0, 1.0])
+MIRROR = np.array([1.0, -1.0, 1.0])
 
 
 def _ring(radius, azimuth_deg) -> Float[ArrayLike, "6 3"]:

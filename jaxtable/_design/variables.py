@@ -10,6 +10,7 @@ import numpy as np
 
 from .._analysis.tolerances import SOURCES
 from .._errors import TableFileError
+from .._jit import device_array
 from .._table import Table, check_table
 from .hardware import Hardware
 from .symmetric import SymmetricDesign
@@ -204,6 +205,6 @@ def stack(designs: list[Design]) -> Design:
     def leaf(*xs):
         if any(isinstance(x, jax.core.Tracer) for x in xs):
             return jnp.stack(xs)
-        return jnp.asarray(np.stack([np.asarray(x) for x in xs]))
+        return device_array(np.stack([np.asarray(x) for x in xs]))
 
     return jax.tree.map(leaf, *designs)

@@ -54,7 +54,7 @@ import optimistix as optx
 from .._calibration.fit import Calibration, Setup
 from .._calibration.heldout import make_folds
 from .._calibration.noise import fit_basis
-from .._jit import jit
+from .._jit import device_array, jit
 from .._threads import one_blas_thread
 
 ROW = ("temperature", "time", "session", "payload")  # features of the stop, not the leg
@@ -304,15 +304,16 @@ def residual_gp(
 
     # REML: the likelihood of the residuals with the fit's coefficients integrated out
     s0 = float(np.sqrt(np.sum(y**2) / max(len(y) - U.shape[1], 1)))
-    h0 = {
-        "w_shared": jnp.full(len(SHARED), jnp.log(0.1 * s0)),
-        "w_legs": jnp.full(len(PER_LEG), jnp.log(0.1)),
-        "legs": jnp.full(6, jnp.log(s0)),
-        "ell_own": jnp.zeros(6),
-        "ell_all": jnp.zeros(11),
-        "noise": jnp.log(s0),
+    h0 = {  # made in numpy (`device_array`): eager jnp compiles a program per shape
+        "w_shared": np.full(len(SHARED), np.log(0.1 * s0)),
+        "w_legs": np.full(len(PER_LEG), np.log(0.1)),
+        "legs": np.full(6, np.log(s0)),
+        "ell_own": np.zeros(6),
+        "ell_all": np.zeros(11),
+        "noise": np.log(s0),
     }
-    args = tuple(jnp.asarray(a) for a in (y, U, A, s, d, R, vary.astype(float), obs))
+    h0 = {k: device_array(v) for k, v in h0.items()}
+    args = tuple(device_array(a) for a in (y, U, A, s, d, R, vary.astype(float), obs))
     h, nlp, ok, steps = _fit_hyper(h0, args, max_steps)
     h = jax.tree.map(np.asarray, h)
 
