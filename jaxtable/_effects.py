@@ -271,7 +271,7 @@ class Rehoming(AbstractEffect):
     source: ClassVar[str] = "repeatability of a homing switch plus index pulse: 5-50 µm per leg"
 
     def __init__(self, offsets=np.zeros((0, 6))):
-        self.offsets = _reshaped(offsets, (-1, 6))
+        self.offsets = device_array(offsets, (-1, 6), np.float64)
 
     @classmethod
     def null(cls, n_sessions: int = 1) -> "Rehoming":
@@ -288,14 +288,7 @@ EFFECTS: dict[str, type[AbstractEffect]] = {
 
 
 def _shared(x) -> Array:
-    return _reshaped(x, ())
-
-
-def _reshaped(x, shape) -> Array:
-    """`x` as float64, reshaped to `shape` (numpy where concrete: no eager programs)."""
-    if is_concrete(x):
-        return device_array(np.asarray(x, dtype=np.float64), shape)
-    return jnp.asarray(x, dtype=jnp.float64).reshape(shape)
+    return device_array(x, (), np.float64)
 
 
 class Discovered(AbstractEffect):
@@ -375,14 +368,13 @@ class Discovered(AbstractEffect):
             _shared, (s2_all, s3_all, ds_all, Ts_all, t_all)
         )
         xp = np if is_concrete(cross) else jnp  # numpy where concrete: no eager programs
-        cross = _reshaped(cross, (6, 6))
-        xp = np if is_concrete(cross) else jnp  # numpy where concrete: no eager programs
-        self.cross = _f64(xp.asarray(cross) * (1.0 - np.eye(6)))  # no self-crosstalk (lead_scale)
+        cross = xp.asarray(cross, dtype=np.float64).reshape(6, 6)
+        self.cross = device_array(cross * (1.0 - np.eye(6)))  # no self-crosstalk: lead_scale
         self.cross_all = _legs(cross_all)
-        self.session_s = _reshaped(session_s, (-1, 6))
+        self.session_s = device_array(session_s, (-1, 6), np.float64)
         n = self.session_s.shape[0]
         all_ = np.zeros(n) if session_s_all is None else session_s_all
-        self.session_s_all = _reshaped(all_, (n,))
+        self.session_s_all = device_array(all_, (n,), np.float64)
 
     @classmethod
     def null(cls, n_sessions: int = 1) -> "Discovered":

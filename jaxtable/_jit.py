@@ -23,11 +23,12 @@ import functools
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax._src import core as jax_core  # trace_state_clean: is any trace under way
 
 from . import _tracecache
-from ._errors import env_switch
+from ._errors import env_switch, is_concrete
 
 ENV = "JAXTABLE_QUICK_COMPILE"
 QUICK = {"xla_cpu_use_fusion_emitters": False}
@@ -91,9 +92,9 @@ def device_array(x, shape=None, dtype=None):
     device, uncommitted, as `jnp.asarray` places it. Eagerly, `jnp.asarray` of a numpy array
     (`jit(stage)`), a reshape, a dtype conversion or a broadcast each compile a program per
     shape and dtype: ~20 ms from an empty cache, and every batch size is a new shape. A
-    traced `x` goes through jnp."""
-    if isinstance(x, jax.core.Tracer):
-        x = x if dtype is None else x.astype(dtype)
+    traced `x` (or a pytree holding tracers) goes through jnp."""
+    if not is_concrete(x):
+        x = jnp.asarray(x, dtype=dtype)
         return x if shape is None else x.reshape(shape)
     if (
         isinstance(x, jax.Array)
