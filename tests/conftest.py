@@ -1,10 +1,62 @@
 import contextlib
 import os
+import re
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "jaxtable"
+# a module that imports jaxtyping or writes an array annotation (`Float[Array, "n 6"]`), or
+# defines custom derivatives: beartype.claw's decorator would wrap a `jax.custom_jvp` before
+# its `defjvp` (jaxtyping's goes to the bottom of a function's decorators)
+_ARRAY_ANNOTATIONS = re.compile(
+    r"jaxtyping|custom_jvp|custom_vjp|\b(Float|Int|Bool|Shaped|Real|Num|Key)\["
+)
+
+
+def annotation_checks() -> tuple[list, list]:
+    """(modules checked by jaxtyping, modules checked by beartype alone): every module of
+    jaxtable, by whether it has array annotations (`_ARRAY_ANNOTATIONS`)."""
+    by_jaxtyping, by_beartype = [], []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        shaped = _ARRAY_ANNOTATIONS.search(path.read_text(encoding="utf-8"))
+        (by_jaxtyping if shaped else by_beartype).append(name)
+    return by_jaxtyping, by_beartype
+
+
+def _check_annotations() -> None:
+    """Every annotation in jaxtable checked at call time, installed before jaxtable is
+    imported. Modules with array annotations: jaxtyping's import hook
+    (`@jaxtyped(typechecker=beartype)` on every function and dataclass: array shapes, and
+    named dimensions agreeing across a call's arguments and result). The other modules:
+    beartype's own import hook (`beartype.claw`: every annotated function, dataclass field
+    and annotated assignment). Their annotations are plain types, which `@jaxtyped` would
+    check with beartype just the same, at 5-12 µs more a call (argument binding and the
+    dimension memo, for nothing there): under jaxtyping's hook on every module the 100-seed
+    false-alarm test took 32 s instead of 20, test_diagnose and test_design 86-90 s instead
+    of 71-74 (benchmarks/NOTES.md)."""
+    from beartype import BeartypeConf
+    from beartype.claw import beartype_packages
+    from jaxtyping import TypeCheckError, install_import_hook
+
+    if "jaxtable" in sys.modules:
+        raise RuntimeError("jaxtable was imported before its annotation checks were installed")
+    by_jaxtyping, by_beartype = annotation_checks()
+    install_import_hook(by_jaxtyping, "beartype.beartype")
+    # by name, not the package: beartype.claw's hook on "jaxtable" would reach every
+    # submodule (jaxtable/__init__.py defines no function: it only imports)
+    # violations raise jaxtyping's TypeCheckError (a TypeError) under both hooks
+    beartype_packages(
+        [m for m in by_beartype if m != "jaxtable"],
+        conf=BeartypeConf(violation_type=TypeCheckError),
+    )
+
+
+_check_annotations()
 
 # Share compiled programs between the test workers (pytest-xdist) and between runs: JAX's
 # persistent compilation cache, in the (git-ignored) pytest cache directory.
