@@ -36,9 +36,9 @@ def _check_annotations() -> None:
     beartype's own import hook (`beartype.claw`: every annotated function, dataclass field
     and annotated assignment). Their annotations are plain types, which `@jaxtyped` would
     check with beartype just the same, at 5-12 µs more a call (argument binding and the
-    dimension memo, for nothing there): under jaxtyping's hook on every module the 100-seed
-    false-alarm test took 32 s instead of 20, test_diagnose and test_design 86-90 s instead
-    of 71-74 (benchmarks/NOTES.md)."""
+    dimension memo, for nothing there): with jaxtyping's hook on every module, test_structure,
+    test_diagnose and test_design took 186 s from an empty cache and 96-99 s warm on two
+    workers, with this split 169 and 90-92 (benchmarks/NOTES.md)."""
     from beartype import BeartypeConf
     from beartype.claw import beartype_packages
     from jaxtyping import TypeCheckError, install_import_hook
@@ -48,8 +48,8 @@ def _check_annotations() -> None:
     by_jaxtyping, by_beartype = annotation_checks()
     install_import_hook(by_jaxtyping, "beartype.beartype")
     # by name, not the package: beartype.claw's hook on "jaxtable" would reach every
-    # submodule (jaxtable/__init__.py defines no function: it only imports)
-    # violations raise jaxtyping's TypeCheckError (a TypeError) under both hooks
+    # submodule (jaxtable/__init__.py defines no function: it only imports). Violations
+    # raise jaxtyping's TypeCheckError (a TypeError) under both hooks.
     beartype_packages(
         [m for m in by_beartype if m != "jaxtable"],
         conf=BeartypeConf(violation_type=TypeCheckError),
