@@ -45,13 +45,12 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._analysis.errormap import budget_one
 from .._analysis.tolerances import SOURCES, Tolerances
 from .._effects import gravity_wrench
-from .._kinematics import joint_bend, leg_lengths, leg_lines
+from .._kinematics import HOME, joint_bend, leg_lengths, leg_lines
 from .._linalg import (
     inv_small,
     largest_eigval_small,
@@ -61,8 +60,6 @@ from .._linalg import (
 from .._rotation import ARCSEC_PER_RAD, rotation_matrix
 from .._table import Table
 from .hardware import Hardware
-
-HOME = np.zeros(6)
 
 
 @dataclass(frozen=True)
