@@ -148,10 +148,14 @@ def compiled_programs(stage: str = "backend_compile"):
         jax.monitoring.unregister_event_duration_listener(listen)
 
 
-# Modules of short tests (each well under a second or two): they run last, so that the two
-# test workers (pytest-xdist hands out tests in collection order) both end on short tests
-# instead of one waiting on the other's last long one (the studies, last in name order, left
-# one core idle for 21 s at the end of a profiled run).
+# Modules of short tests (each well under a second or two) run last. The workers share the
+# tests by work stealing (`--dist worksteal` in pyproject's addopts: each starts on one
+# contiguous half of the collection and, when its queue runs out, takes half of what the
+# other has left), so the last tests either worker runs are short ones and both end
+# together. With xdist's default `load` scheduling, which hands out runs of consecutive
+# tests as large as half a worker's share, one worker ran the studies and the tolerance
+# checks while the other had finished: one core idle for the last 35 s of a profiled clean
+# run, 4 s with work stealing (benchmarks/NOTES.md).
 LAST = (
     "test_batch.py",
     "test_cache.py",
