@@ -230,6 +230,24 @@ def test_smoothed_worst_cases_bracket_and_converge_to_the_exact_ones(design, few
 # ---------------------------------------------------------------- optimisation
 
 
+def test_another_tolerance_budget_runs_the_compiled_programs(design, few_poses):
+    """A hardware's tolerances are float64 leaves like its other fields, not numbers built
+    into the compiled programs: a design with twice the paper's tolerances runs what the
+    paper's budget compiled (nothing traced or lowered again), with twice the position σ
+    (first order, σ is linear in the tolerances) and half the tolerance cost (Σ paper / t
+    over the six sources: 6 at the paper's budget, 3 at twice it)."""
+    paper = jt.assess_design(design, workspace=few_poses).values
+    hw = jt.hardware_for(REF, tolerances=jt.Tolerances().scaled(2.0))
+    with compiled_programs("jaxpr_to_mlir_module") as lowered:
+        loose = jt.assess_design(jt.Design(design.geometry, hw), workspace=few_poses).values
+    assert lowered == [], lowered
+    assert float(paper["tolerance_cost"]) == pytest.approx(6.0, rel=1e-12)
+    assert float(loose["tolerance_cost"]) == pytest.approx(3.0, rel=1e-12)
+    for k in ("max_position_sigma_mm", "max_rotation_sigma_arcsec"):
+        assert float(loose[k]) == pytest.approx(2.0 * float(paper[k]), rel=1e-12), k
+    assert float(loose["gci"]) == float(paper["gci"])  # geometry alone
+
+
 def test_stacks_of_any_size_share_few_compiled_programs(design):
     """`assess_designs` runs stacks of up to 64 designs as the next power of two (at least
     8; `run_batch`'s sizes, counted in test_batch) and larger ones in whole chunks of 64:

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from conftest import quick_jit, random_poses
+from conftest import compiled_programs, quick_jit, random_poses
 
 import jaxtable as jt
 from jaxtable._analysis.errormap import PoseList, _Histograms, error_map, workspace_slice
@@ -47,6 +47,20 @@ def test_chunking_does_not_change_results(table, small_map):
         summary["sources"]["total"]["trans_max_mm"], rel=1e-12
     )
     assert emap.std.shape == (9, 7, len(SOURCES) + 1, 6)
+
+
+def test_another_budget_runs_the_same_program_and_scales_sigma(table, small_map):
+    """First order, every σ is linear in the tolerances: a budget scaled by 3 gives 3x each
+    source's σ and the total, and the same spiral bias and condition number. It runs the
+    program the default budget compiled (the σ are the kernel's arguments, not constants
+    built into it): nothing is traced or lowered again."""
+    grid, (emap, _) = small_map
+    with compiled_programs("jaxpr_to_mlir_module") as lowered:
+        emap3, _ = error_map(table, Tolerances().scaled(3.0), grid)
+    assert not [name for name in lowered if "budget_row" in name], lowered
+    np.testing.assert_allclose(emap3.std, 3.0 * emap.std, rtol=1e-6)  # the map keeps float32
+    np.testing.assert_array_equal(emap3.bias, emap.bias)
+    np.testing.assert_array_equal(emap3.cond, emap.cond)
 
 
 def test_histogram_bins_by_arithmetic_equal_searchsorted():

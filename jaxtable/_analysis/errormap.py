@@ -185,7 +185,10 @@ def error_map(
         grid = PoseList(np.asarray(grid, dtype=float).reshape(-1, 6))
     if len(grid) == 0:
         raise ValueError("error_map: the grid has no poses")
-    sigmas = tolerances.sigmas()
+    # arrays, not Python floats: the compiled kernel takes them as arguments, so every
+    # budget (a scaled one, another tolerance file) runs the same program instead of
+    # compiling one with its numbers built in
+    sigmas = tuple(np.asarray(s, dtype=np.float64) for s in tolerances.sigmas())
     names = list(SOURCES) + ["total", "total (spiral uncompensated)"]
     hist = _Histograms((2, len(names)))  # rows: translation mm, rotation arcsec
     n_reach = 0

@@ -2,6 +2,7 @@
 mass, the motion the table must perform, and the tolerance budget (`Hardware`)."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
@@ -67,7 +68,9 @@ class Hardware(eqx.Module):
         self.angular_velocity = _f64(angular_velocity)
         self.efficiency = _f64(efficiency)
         self.characteristic_length = _f64(characteristic_length)
-        self.tolerances = tolerances
+        # float64 leaves like the others (a `Tolerances` holds Python floats by default,
+        # which a compiled program would take as constants: one program per budget)
+        self.tolerances = jax.tree.map(_f64, tolerances)
 
     def __check_init__(self):
         if not is_concrete(self):

@@ -88,7 +88,7 @@ def x_stroke_figure(
     xs = np.linspace(-x_range, x_range, 161)
     poses = np.zeros((len(xs), 6))
     poses[:, 0] = xs
-    emap, _ = error_map(table, tolerances, poses, chunk=len(xs))
+    emap, _ = error_map(table, tolerances, poses)  # the small maps' compiled size (256 rows)
     tr = emap.translation(True)
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
     for k, name in enumerate(LABELS):
