@@ -322,7 +322,7 @@ def residual_gp(
     pos[obs] = np.arange(len(obs))
     sq_m = sq_g = 0.0
     count = 0
-    noise = float(np.exp(h["noise"]))
+    noise = np.exp(h["noise"])  # an array: as a Python float it would be built into the program
     Call = _reading_cov_jit(h, *args[2:])  # the GP part's covariance, shared by every fold
     for r in rows:
         f = pos[(r[:, None] * 6 + np.arange(6)).reshape(-1)]
@@ -349,7 +349,7 @@ def residual_gp(
         heldout_rms_gp=float(rms_g),
         gain=float(1.0 - rms_g / rms_m),
         components=components,
-        noise=noise,
+        noise=float(noise),
         log_evidence=float(-nlp),
         converged=bool(ok),
         steps=int(steps),
