@@ -290,7 +290,14 @@ def cond_small(J: Float[ArrayLike, "n n"]) -> Float[ArrayLike, ""]:
     (a condition number above ~3×10⁵). Relative precision ~5e-15 cond² at worst (forming JᵀJ
     squares the condition; λ_min is good to ~1e-15 of its trace): 3e-14 at the error map's
     cond ≈ 2–3, 5e-9 at 10³, 5e-5 at 10⁵. Not differentiable."""
-    lam = extreme_eigvals_psd(gram_small(J))
+    return cond_of_gram(gram_small(J))
+
+
+def cond_of_gram(S: Float[ArrayLike, "n n"]) -> Float[ArrayLike, ""]:
+    """`cond_small(J)` given S = JᵀJ (n, n) instead of J: for a J whose Gram matrix follows
+    from one already formed (the error map's Euler-angle Jacobian). Reads S's lower
+    triangle."""
+    lam = extreme_eigvals_psd(S)
     ratio = lam[1] / jnp.where(lam[0] > 0, lam[0], 1.0)
     return jnp.where(ratio > SINGULAR, jnp.sqrt(1.0 / jnp.where(ratio > 0, ratio, 1.0)), jnp.inf)
 

@@ -24,7 +24,7 @@ from .._batch import stream_batch
 from .._errors import require_x64
 from .._forward import platform_radius
 from .._kinematics import within_limits
-from .._linalg import cond_small, inv_normal_small, matmul_small
+from .._linalg import cond_of_gram, gram_small, inv_normal_small, matmul_small
 from .._rotation import ARCSEC_PER_RAD, euler_rate_matrix
 from .._table import Table
 from .sensitivities import BUDGET_WRT, budget_jacobians_one
@@ -46,14 +46,23 @@ def budget_one(table: Table, sigmas: tuple, pose, with_cond: bool = True):
     # K⁻¹ = D (K D)⁻¹ with D = diag(1, 1, 1, 1/ρ, 1/ρ, 1/ρ): K D is well conditioned
     rho = platform_radius(table)
     d = jnp.array([1.0, 1.0, 1.0, 1.0 / rho, 1.0 / rho, 1.0 / rho])
-    Kinv = d[:, None] * inv_normal_small(K * d)
+    Kd = K * d
+    Kinv = d[:, None] * inv_normal_small(Kd)
     column = [BUDGET_WRT.index(PARAMETER[src]) for src in SOURCES]
     std = jnp.asarray(sigmas)[:, None] * jnp.sqrt(matmul_small(Kinv**2, gains[:, column])).T
     std = jnp.concatenate([std, jnp.sqrt(jnp.sum(std**2, axis=0))[None]])
     bias = matmul_small(Kinv, spiral)  # not compensating = an L0 error of Δl2
-    if with_cond:  # of the Euler-angle Jacobian K diag(I, E), angles scaled by the radius ρ
+    if with_cond:
+        # of the Euler-angle Jacobian J = K D B, B = diag(I, E), angles scaled by the radius ρ:
+        # from JᵀJ = Bᵀ G B with G = (K D)ᵀ(K D), the Gram matrix the inverse above forms
+        # (one program computes it once), instead of J and its own Gram matrix (map ~5 %
+        # faster)
         E = euler_rate_matrix(pose[3:])
-        cond = cond_small(jnp.concatenate([K[:, :3], matmul_small(K[:, 3:], E) / rho], axis=1))
+        G = gram_small(Kd)
+        low = matmul_small(E.T, G[3:, :3])  # the lower triangle is what cond_of_gram reads
+        rot = matmul_small(E.T, matmul_small(G[3:, 3:], E))
+        top = jnp.concatenate([G[:3, :3], low.T], axis=1)
+        cond = cond_of_gram(jnp.concatenate([top, jnp.concatenate([low, rot], axis=1)]))
     else:
         cond = jnp.asarray(jnp.nan)
     reach = within_limits(table, pose, once=True)  # shares the budget's sines
