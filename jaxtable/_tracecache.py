@@ -56,6 +56,7 @@ _LOCKS: dict = {}  # key -> lock held while its program is loaded or traced
 _GUARD = threading.Lock()  # guards _LOCKS
 _REPEATS: dict = {}  # call signature -> (key, its objects, its arrays' types): `_repeat`
 MAX_REPEATS = 1024
+_WRAPPERS = 8  # `__wrapped__` links `_named` follows from a module's name to the function
 
 
 def directory() -> Path | None:
@@ -91,13 +92,19 @@ def _trusted(module: str | None) -> bool:
 
 def _named(fun) -> bool:
     """Whether `fun` is jaxtable's module-level function of its name (itself, or what that
-    name's object wraps): only then do its module and name identify its code (a
-    `jax.vmap(f)` carries f's name, and two such wrappers of f could differ)."""
+    name's object wraps, through a chain of `__wrapped__` as `functools.wraps` leaves it:
+    `_jit.jit`'s wrapper, and a type checker's around that): only then do its module and
+    name identify its code (a `jax.vmap(f)` carries f's name, and two such wrappers of f
+    could differ)."""
     module = getattr(fun, "__module__", None) or ""
     if module.split(".")[0] != "jaxtable":
         return False
     obj = getattr(sys.modules.get(module), getattr(fun, "__qualname__", ""), None)
-    return obj is fun or getattr(obj, "__wrapped__", None) is fun
+    for _ in range(_WRAPPERS):
+        if obj is fun:
+            return True
+        obj = getattr(obj, "__wrapped__", None)
+    return False
 
 
 class _KeyPickler(pickle.Pickler):
@@ -232,8 +239,24 @@ def _export(fun, static, treedef, leaves, options: dict):
         jax.ShapeDtypeStruct(shape, np.dtype(dtype), weak_type=weak)
         for shape, dtype, weak in _avals(leaves)
     ]
-    exported = export.export(jax.jit(flat))(*specs)
+    exported = export.export(jax.jit(flat), disabled_checks=_unstable_targets())(*specs)
     return exported, structure["template"]
+
+
+@functools.cache
+def _unstable_targets() -> tuple:
+    """Export's permission for the CPU's LAPACK kernels that JAX does not promise to keep
+    stable across versions (`lapack_dormqr_ffi`, which lineax's QR solve in optimistix's
+    Levenberg-Marquardt calls, among them): a stored program is keyed on the jaxlib version
+    that traced it, so only that version loads it. Without it such a program was traced
+    once for the refused export and again for the plain call, in every process."""
+    try:
+        from jax._src.lib import lapack
+
+        names = {name for regs in lapack.registrations().values() for name, *_ in regs}
+    except Exception:  # another jaxlib's layout: export refuses them, and they trace as before
+        return ()
+    return tuple(export.DisabledSafetyCheck.custom_call(name) for name in sorted(names))
 
 
 def _store(folder: Path, path: Path, exported, out) -> None:

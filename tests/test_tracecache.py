@@ -4,6 +4,8 @@ and code from outside jaxtable, unexportable programs and broken entries are tra
 before."""
 
 import dataclasses
+import functools
+import inspect
 from pathlib import Path
 
 import jax
@@ -205,6 +207,49 @@ def test_a_program_that_cannot_be_exported_is_traced_as_before(store, monkeypatc
     np.testing.assert_allclose(f(jnp.zeros(3)), np.eye(3), atol=1e-15)
     np.testing.assert_allclose(f(jnp.zeros(3)), np.eye(3), atol=1e-15)  # remembered as refused
     assert _entries(store) == [] and len(_tracecache._REFUSED) == 1
+
+
+def test_a_module_function_under_further_wrappers_is_stored(store, monkeypatch):
+    """A module's name may hold `_jit.jit`'s wrapper inside other decorators that keep
+    `__wrapped__` (a type checker's, as the suite's import hooks put around every function):
+    the function is still the module's own, and its program is stored."""
+
+    def checked(fn):
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            return fn(*args, **kwargs)
+
+        return wrapper
+
+    plain = inspect.unwrap(jt._rotation.rotation_matrix)
+    compiled = _jit.jit(plain)
+    monkeypatch.setattr(jt._rotation, "rotation_matrix", checked(checked(compiled)))
+    np.testing.assert_allclose(compiled(jnp.zeros(3)), np.eye(3), atol=1e-15)
+    assert len(_entries(store)) == 1 and not _tracecache._REFUSED
+
+
+def test_a_program_that_calls_lapack_kernels_is_stored(table, store, traces):
+    """A Levenberg-Marquardt fit (optimistix; lineax's QR solve calls LAPACK's ormqr, which
+    JAX does not promise to keep stable across versions, and stored programs are keyed on
+    the jaxlib version) is stored like the others, and a new process loads it instead of
+    tracing it: once for a refused export and again for the plain call, as before."""
+    from jaxtable._calibration.fit import fit, setup
+    from jaxtable._calibration.simulate import plan_random
+
+    data = jt.simulate(table, jt.perturb_table(table, seed=4), plan_random(30, 4), jt.tracker6())
+    st = setup(table, data, compensated=True)
+    first = fit(st, method="levenberg_marquardt", noise="fixed")
+    names = {run.__name__ for run, _ in _tracecache._MEMORY.values()}
+    assert {"_levenberg_marquardt", "_block_jacobian"} <= names and not _tracecache._REFUSED
+    _tracecache._MEMORY.clear()  # as in a new process: only the stored entries are left
+    _tracecache._REPEATS.clear()
+    traces.clear()
+    again = fit(st, method="levenberg_marquardt", noise="fixed")
+    assert "flat" not in traces, traces  # loaded, not traced (compiled under their names)
+    loaded = {run.__name__ for run, _ in _tracecache._MEMORY.values()}
+    assert {"_levenberg_marquardt", "_block_jacobian"} <= loaded
+    assert first.converged and again.steps == first.steps
+    np.testing.assert_array_equal(again.value, first.value)
 
 
 def test_a_broken_entry_is_replaced(table, store):

@@ -1458,8 +1458,12 @@ def _leg_lengths_jvp(table, poses, dq, frames):
     return jax.vmap(one)(poses, dq, frames)
 
 
-# (N,) poses and payloads -> (N, 6) static leg forces, N (one compiled program per shape)
-_leg_forces_batch = jit(jax.vmap(leg_forces, in_axes=(None, 0, 0)))
+@jit
+def _leg_forces_batch(table, poses, payloads):
+    """(N, 6) poses and (N,) payloads (kg) -> (N, 6) static leg forces (N); one compiled
+    program per N. A module-level function rather than `jit(jax.vmap(leg_forces))`, whose
+    name would be `leg_forces`'s: the traced-program store keeps only named programs."""
+    return jax.vmap(leg_forces, in_axes=(None, 0, 0))(table, poses, payloads)
 
 
 def leg_residuals(diag: Diagnosis, cal: Calibration) -> np.ndarray | None:
