@@ -16,6 +16,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from conftest import quick_jit
 from scipy.stats import binom
 
 import jaxtable as jt
@@ -106,7 +107,8 @@ def _common_value(name, truth, nominal, data):
     if np.ptp(truth) == 0:
         return truth[0]
     if name == "compliance":  # F_i(q) / k_i: x = the axial force (static equilibrium)
-        forces = jax.vmap(jt.leg_forces, in_axes=(None, 0, 0))
+        # one compiled program (eagerly, each of its ~80 operations compiled on its own)
+        forces = quick_jit(jax.vmap(jt.leg_forces, in_axes=(None, 0, 0)))
         x = np.asarray(forces(nominal, np.asarray(data.cmd_pose), np.asarray(data.payload)))
     elif name == "thermal":  # α_i (T − 20) L0_i
         x = (np.asarray(data.temperature) - 20.0)[:, None] * np.asarray(nominal.zero_lengths)
