@@ -232,7 +232,8 @@ def test_a_program_that_calls_lapack_kernels_is_stored(table, store, traces):
     """A Levenberg-Marquardt fit (optimistix; lineax's QR solve calls LAPACK's ormqr, which
     JAX does not promise to keep stable across versions, and stored programs are keyed on
     the jaxlib version) is stored like the others, and a new process loads it instead of
-    tracing it: once for a refused export and again for the plain call, as before."""
+    tracing it (every process traced it twice before: for the refused export, then for the
+    plain call)."""
     from jaxtable._calibration.fit import fit, setup
     from jaxtable._calibration.simulate import plan_random
 
