@@ -28,6 +28,7 @@ deleted at any time.
 import functools
 import hashlib
 import importlib.metadata
+import inspect
 import io
 import os
 import pickle
@@ -56,7 +57,6 @@ _LOCKS: dict = {}  # key -> lock held while its program is loaded or traced
 _GUARD = threading.Lock()  # guards _LOCKS
 _REPEATS: dict = {}  # call signature -> (key, its objects, its arrays' types): `_repeat`
 MAX_REPEATS = 1024
-_WRAPPERS = 8  # `__wrapped__` links `_named` follows from a module's name to the function
 
 
 def directory() -> Path | None:
@@ -100,11 +100,10 @@ def _named(fun) -> bool:
     if module.split(".")[0] != "jaxtable":
         return False
     obj = getattr(sys.modules.get(module), getattr(fun, "__qualname__", ""), None)
-    for _ in range(_WRAPPERS):
-        if obj is fun:
-            return True
-        obj = getattr(obj, "__wrapped__", None)
-    return False
+    try:
+        return inspect.unwrap(obj, stop=lambda f: f is fun) is fun
+    except ValueError:  # a cycle of `__wrapped__`
+        return False
 
 
 class _KeyPickler(pickle.Pickler):
