@@ -1,5 +1,6 @@
 """Workspace error maps: grid layout, chunking, independent cross-checks, CLI."""
 
+import jax
 import numpy as np
 import pytest
 from conftest import compiled_programs, quick_jit, random_poses
@@ -78,6 +79,24 @@ def test_histogram_bins_by_arithmetic_equal_searchsorted():
     np.testing.assert_array_equal(ends, [0, h.BINS + 1, 0, h.BINS + 1])
 
 
+def test_histograms_count_the_counted_rows_only():
+    """A chunk's slots (`_Histograms.slots`, as the kernel writes them) counted by `add`:
+    each histogram holds the bins of the rows marked counted and nothing of the others, and
+    the maxima are those of the counted rows (the kernel gives the others' values as 0)."""
+    rng = np.random.default_rng(5)
+    x = 10.0 ** rng.uniform(-8, 2, (500, 2, 3))
+    counted = rng.random(500) < 0.6
+    slots = np.asarray(quick_jit(jax.vmap(_Histograms.slots))(x, counted))
+    h = _Histograms((2, 3))
+    h.add(np.where(counted[:, None, None], x, 0.0), slots)
+    for i in range(2):
+        for j in range(3):
+            want = np.bincount(np.searchsorted(h.edges, x[counted, i, j]), minlength=h.BINS + 2)
+            np.testing.assert_array_equal(h.counts[i, j], want)
+            assert h.max[i, j] == x[counted, i, j].max()
+    assert h.counts.sum() == 6 * counted.sum()
+
+
 def test_streamed_summary_equals_the_kept_map(table):
     """The summary counted from the kernel's bins (in chunks) against numpy statistics of the
     kept per-pose map, over reachable poses only (a third of the poses are out of reach)."""
@@ -137,8 +156,6 @@ def test_reachable_cond_and_bias_against_independent_truth(table):
     emap, _ = error_map(table, Tolerances(), PoseList(poses))
     np.testing.assert_array_equal(emap.reachable, np.asarray(jt.reachable(table, poses)))
     # condition number: numpy on the Jacobian of the actuator-side length (angles scaled)
-    import jax
-
     from jaxtable import _kinematics as kin
 
     r = float(np.mean(np.linalg.norm(np.asarray(table.platform_joints), axis=1)))
