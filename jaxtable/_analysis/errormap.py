@@ -160,7 +160,7 @@ class _Histograms:
     def slots(cls, values, counted):
         """Where each of `values` (*shape) counts in the histograms' counts flattened
         (`bin_index` offset by its histogram's place), as int32: jnp, for inside the kernel.
-        Not `counted` (a scalar): one past the last count, a slot `add` drops."""
+        Where `counted` (a scalar) is False: one past the last count, a slot `add` drops."""
         m = cls.BINS + 2
         place = np.arange(np.size(values)).reshape(np.shape(values)) * m
         return jnp.where(counted, cls.bin_index(values) + place, np.size(values) * m).astype(
@@ -168,7 +168,7 @@ class _Histograms:
         )
 
     def add(self, values, slots):
-        """Count one chunk: `slots` (n, *shape) of its values (`slots`) and `values` (n,
+        """Count one chunk: its values' slots (n, *shape; `slots`) and the `values` (n,
         *shape), 0 where not counted (for the maxima; the values are positive). The host's
         share of the streamed map: one bincount and one max over the chunk, no indexing
         (with the reachable rows picked out on the host first, counting took ~15 ms a chunk
