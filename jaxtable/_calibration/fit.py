@@ -350,8 +350,8 @@ def _make_canonical(problem: Problem, layout: Layout, theta) -> _Canonical:
         if one.all():  # each column one canonical column: gathered
             pick[j : j + n] = np.argmax(block != 0, axis=0)
         else:  # a product over the rows it reaches (none: columns of zeros)
-            r0 = int(rows[0]) if rows.size else 0
-            products.append((j, j + n, r0, int(rows[-1]) + 1 if rows.size else r0))
+            r0, r1 = (int(rows[0]), int(rows[-1]) + 1) if rows.size else (0, 0)
+            products.append((j, j + n, r0, r1))
         j += n
     return _Canonical(lay, jax.tree.map(device_array, template), embed, pick, tuple(products))
 
