@@ -575,7 +575,7 @@ class _TruncatedGram:
             self.size = np.shape(g)[0]
             return
         lam, self.V = np.linalg.eigh(G)
-        self.keep = lam > rcond**2 * lam[-1]
+        self.keep = lam > rcond**2 * (lam[-1] if lam.size else 0.0)  # (no free parameter)
         self.lam = np.where(self.keep, lam, 1.0)
         self.c = np.where(self.keep, self.V.T @ g, 0.0)  # g in eigen-coordinates, kept
 
@@ -657,31 +657,45 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
     and gradient of every step include them (G + Λ, g + Λ f with Λ = diag(prior²)); J and
     the residuals returned are the data's. Only free parameters (`mask`) take it.
 
+    The step's model holds the free parameters' columns only: a parameter frozen by `mask`
+    has D = 0, so its row and column of the scaled Gram matrix are zero and it takes no step
+    (the full matrix's eigen-decomposition gave it none either). The diagnosis fits nested
+    models on one canonical parameter vector (170 parameters for the bundled example, 42–61
+    of them free): an eigen-decomposition of the free block costs ~(F/P)³ of the full one's.
+
     Returns (θ, converged, steps, J at θ, solved (N,), residual at θ0, residual at θ), numpy
     arrays and θ as `theta0`'s pytree."""
     flat0, mask = _flat(theta0), np.asarray(mask, float)
     lam = np.zeros_like(mask) if prior is None else (np.asarray(prior, float) * mask) ** 2
     blocks = _stop_blocks(problem, layout)
     weighted = np.asarray(problem.weight).any(axis=1)
+    free = np.flatnonzero(mask)  # the model's parameters: p, D and G below are over these
 
     def evaluate(f):
         J, r, solved = jacobian_in_chunks(problem, layout, theta0, flat=f, blocks=blocks)
         ok = np.all(np.asarray(solved)[weighted]) and np.all(np.isfinite(r))
         return J, r, solved, float(r @ r + lam @ f**2) if ok else np.inf
 
-    def gram(J):  # the Gauss-Newton model's matrix, the prior's pseudo-observations in it
-        return J.T @ J + np.diag(lam)
+    def gram(J):  # the model's matrix over the free columns, the prior's pseudo-observations in it
+        A = J[:, free]
+        return A.T @ A + np.diag(lam[free]), A
 
-    def scaled(x):  # parameter values (or differences) in the scaled variables
+    def scaled(x):  # free parameters' values (or differences) in the scaled variables
         on = D > 0
-        return np.where(on, x / np.where(on, D, 1.0), 0.0)
+        return np.where(on, x[free] / np.where(on, D, 1.0), 0.0)
+
+    def moved(f, p):  # f (P,) moved by the scaled step p of the free parameters
+        out = f.copy()
+        out[free] += D * p
+        return out
 
     J, r, solved, chi2 = evaluate(flat0)
-    G = gram(J)
-    D, r0 = _scales(G, mask), r
+    G, A = gram(J)
+    D, r0 = _scales(G, mask[free]), r
     f, k, done, radius, flat = flat0, 1, False, np.inf, False
     while not done and k < max_steps:
-        model = _TruncatedGram(D[:, None] * G * D[None, :], D * (J.T @ r + lam * f), rcond)
+        g = D * (A.T @ r + lam[free] * f[free])
+        model = _TruncatedGram(D[:, None] * G * D[None, :], g, rcond)
         was_flat, flat = flat, model.reduction(model.step()) <= 1e-10 * chi2
         if was_flat and flat:  # twice nothing to gain beyond rounding: converged
             done = True
@@ -689,7 +703,7 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
         p, mu = model.within(radius)
         if not np.all(np.isfinite(p)):
             break
-        trial = f + D * p
+        trial = moved(f, p)
         J_t, r_t, solved_t, chi2_t = evaluate(trial)
         k += 1
         predicted = model.reduction(p)
@@ -701,14 +715,14 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
             # geodesic acceleration (Transtrum & Sethna): the residual's second derivative
             # along p from the step just evaluated, r(f + p) = r + J p + r_pp / 2 + ...,
             # bends the step along a curved valley: p + a/2, a = −(G + μI)⁺ Jᵀ r_pp
-            r_pp = 2 * (r_t - r - J @ (D * p))
-            a = model.solve(D * (J.T @ r_pp), mu)
+            r_pp = 2 * (r_t - r - A @ (D * p))
+            a = model.solve(D * (A.T @ r_pp), mu)
             if 2 * np.linalg.norm(a) <= 0.75 * np.linalg.norm(p):  # their bound
                 bent = p + 0.5 * a
-                J_b, r_b, solved_b, chi2_b = evaluate(f + D * bent)
+                J_b, r_b, solved_b, chi2_b = evaluate(moved(f, bent))
                 k += 1
                 if chi2_b < chi2:  # taken, with Δ as for a fair step (ρ of 0.26 at least)
-                    p, trial = bent, f + D * bent
+                    p, trial = bent, moved(f, bent)
                     J_t, r_t, solved_t, chi2_t = J_b, r_b, solved_b, chi2_b
                     predicted = model.reduction(p)
                     rho = max((chi2 - chi2_t) / predicted, 0.26) if predicted > 0 else 0.26
@@ -728,7 +742,7 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
         elif rho > 0.75:
             radius = max(radius, 2 * length)
         f, J, r, solved, chi2 = trial, J_t, r_t, solved_t, chi2_t
-        G = gram(J)
+        G, A = gram(J)
     return _unflat(theta0, f), done, k, J, solved, r0, r
 
 
