@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._distributions import chi2_sf
+
 
 @dataclass(frozen=True)
 class ScaleAlias:
@@ -85,7 +87,5 @@ def instrument_scale(cal, mask, alpha: float = 0.01) -> ScaleAlias | None:
     dev = eps - common
     stat = float(dev @ W @ dev)
     dof = int(np.linalg.matrix_rank(C)) - 1
-    from scipy.stats import chi2  # here: `import jaxtable` would spend ~0.6 s on it
-
-    p = float(chi2.sf(stat, dof)) if dof > 0 else 1.0
+    p = float(chi2_sf(stat, dof)) if dof > 0 else 1.0
     return ScaleAlias(common, float(np.sqrt(1.0 / info)), p, p >= alpha)

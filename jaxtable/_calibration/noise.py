@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import _params as params
+from .._distributions import chi2_ppf, chi2_sf
 
 SPLIT_ALPHA = 1e-3
 """Level of the test that a group's columns share one σ (see the module docstring): below
@@ -504,6 +505,9 @@ def screen_groups(groups, session, n_sessions: int, cells) -> np.ndarray:
     return np.where(own, part, np.where(column >= 0, part.max() + 1 + column, -1))
 
 
+QUANTILES = np.array([0.975, 0.025])
+"""The χ² quantiles of a σ's 95 % interval (`estimate`): σ̂ √(r / χ²_q(r))."""
+
 MAD_EFFICIENCY = 0.368
 """Asymptotic efficiency of the median absolute deviation as a normal scale estimate: its
 log-variance has the spread of a variance on 0.368 × as many degrees of freedom."""
@@ -529,8 +533,6 @@ def robust_scales(
 def equal_sigma_p(scale, red) -> float:
     """p-value of Bartlett's test that columns with estimated σ scales `scale` (k,) on `red`
     (k,) degrees of freedom share one σ (χ²(k − 1); NaN for k < 2)."""
-    from scipy.stats import chi2
-
     v, r = np.asarray(scale, float) ** 2, np.asarray(red, float)
     k = len(v)
     if k < 2:
@@ -540,7 +542,7 @@ def equal_sigma_p(scale, red) -> float:
     stat = (R * np.log(pooled) - np.sum(r * np.log(v))) / (
         1.0 + (np.sum(1.0 / r) - 1.0 / R) / (3.0 * (k - 1))
     )
-    return float(chi2.sf(max(stat, 0.0), k - 1))
+    return float(chi2_sf(max(stat, 0.0), k - 1))
 
 
 def pooled_scales(column_scale, column_red) -> np.ndarray:
@@ -599,8 +601,6 @@ def estimate(
     redundancies, `use_cells` (N, 6) the cells fitted; per part (G, 6 S) `column_scale` and
     `column_red`, `split` and `equal_p` (G,) from `pool_columns` (default: every part at
     its group's scale, none split)."""
-    from scipy.stats import chi2
-
     G, S = len(model.names), len(model.sessions)
     K = 6 * S
     if column_scale is None:
@@ -621,7 +621,7 @@ def estimate(
         col_sigma[g, k] = column_scale[g, k] * np.median(model.sigma0[cells])
         if model.stated[g]:
             rk = max(column_red[g, k], 1.0)
-            col_interval[g, k] = column_scale[g, k] * np.sqrt(rk / chi2.ppf([0.975, 0.025], rk))
+            col_interval[g, k] = column_scale[g, k] * np.sqrt(rk / chi2_ppf(QUANTILES, rk))
     col_scale = np.where(in_group, column_scale, np.nan)
     col_red = np.where(in_group, column_red, np.nan)
     sigma = np.zeros(G)
@@ -635,7 +635,7 @@ def estimate(
         r = max(red_g[g], 1.0)
         if model.stated[g]:
             stated_sigma[g] = base
-            interval[g] = scale[g] * np.sqrt(r / chi2.ppf([0.975, 0.025], r))
+            interval[g] = scale[g] * np.sqrt(r / chi2_ppf(QUANTILES, r))
             ok = interval[g, 0] <= 1.0 <= interval[g, 1]
             if split[g]:  # each part's own σ against the statement
                 lo, hi = col_interval[g, np.isfinite(col_interval[g, :, 0])].T

@@ -28,6 +28,7 @@ from statistics import NormalDist
 
 import numpy as np
 
+from .._distributions import t_ppf
 from .._errors import POSE_COLUMNS
 from .._rotation import euler_from_matrix, euler_matrices, rotation_log
 from .noise import robust_scales
@@ -183,9 +184,7 @@ def threshold(tested: int, alpha: float = ALPHA, group: int | None = None) -> fl
     q = 1.0 - alpha / (2.0 * max(tested, 1))
     if group is None:
         return NormalDist().inv_cdf(q)
-    from scipy.stats import t
-
-    return float(t.ppf(q, max(0.37 * group, 3.0)))
+    return float(t_ppf(q, max(0.37 * group, 3.0)))
 
 
 def screen(cal, mask, groups, extensions, session, alpha: float = ALPHA):

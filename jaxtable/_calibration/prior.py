@@ -18,6 +18,7 @@ frames, the target offset and the other effects' fields have no prior (weight 0)
 import numpy as np
 
 from .._analysis.tolerances import Tolerances, parameter_sigma
+from .._distributions import chi2_sf
 
 
 def parameter_of(key: str) -> str:
@@ -65,8 +66,6 @@ def check(value, covariance, prior_sigma) -> tuple[float, float, float]:
     the data determine. p by Satterthwaite's scaled χ² (mean and variance matched). A small
     p: the data pull the geometry beyond its tolerances (the table is not built to them, or
     the model lacks an effect the geometry absorbs)."""
-    from scipy.stats import chi2
-
     sigma = np.asarray(prior_sigma, float)
     on = np.isfinite(sigma)
     w = 1.0 / sigma[on]
@@ -77,4 +76,4 @@ def check(value, covariance, prior_sigma) -> tuple[float, float, float]:
     if second <= 0:
         return x, 0.0, 1.0 if x == 0 else 0.0
     scale, nu = second / mean, mean**2 / second
-    return x, mean, float(chi2.sf(x / scale, nu))
+    return x, mean, float(chi2_sf(x / scale, nu))

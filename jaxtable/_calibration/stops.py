@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .._distributions import f_sf
 from .._rotation import ARCSEC_PER_RAD, wrap_reading_difference
 
 GROUPS = {"positions": slice(0, 3), "angles": slice(3, 6)}
@@ -306,8 +307,6 @@ def _pair_parts(d, moves):
     `moves` (n, 6) the move into each. Least squares of d on [1, moves]; each part against
     the full fit's residual: (varying (F, dof, p, rest), common (F, dof, p, rest), change
     (n,) the fitted move part, intercept), or None with fewer than `PAIR_MIN_DOF` rest dof."""
-    from scipy.stats import f as f_dist
-
     X = np.column_stack([np.ones(len(d)), moves])
     full, rank, beta = _rss(X, d)
     rest = len(d) - rank
@@ -318,7 +317,7 @@ def _pair_parts(d, moves):
         ss, r, _ = _rss(reduced, d)
         dof = rank - r
         F = ((ss - full) / dof) / (full / rest) if dof > 0 else float("nan")
-        parts.append((float(F), dof, float(f_dist.sf(F, dof, rest)) if dof > 0 else 1.0, rest))
+        parts.append((float(F), dof, float(f_sf(F, dof, rest)) if dof > 0 else 1.0, rest))
     return parts[0], parts[1], moves @ beta[1:], float(beta[0])
 
 
@@ -389,8 +388,6 @@ def trend_test(resid, read, stop, k, moves=None) -> dict:
     (`stop_moves`; None: not tested), by `pair_trend_test`; the groups either test covers
     share `TREND_ALPHA`. `resid` (N, 6): each reading minus its stop's mean (0 where not
     read); `read` (N, 6); `stop` (N,) nondecreasing; `k` (S, 6) readings a stop."""
-    from scipy.stats import f as f_dist
-
     # each reading's place among its stop's readings of its column, centred: the line's x
     kk = k[stop]
     line_x = np.where(read & (kk >= 3), _reading_place(read, stop, k.shape[0]) - (kk - 1) / 2, 0.0)
@@ -425,7 +422,7 @@ def trend_test(resid, read, stop, k, moves=None) -> dict:
         parts = {}
         for name, ss, dof in (("common", common, d_common), ("varying", lines - common, d_varying)):
             F = (ss / dof) / (rest / d_rest) if dof > 0 else float("nan")
-            parts[name] = (float(F), dof, float(f_dist.sf(F, dof, d_rest)) if dof > 0 else 1.0)
+            parts[name] = (float(F), dof, float(f_sf(F, dof, d_rest)) if dof > 0 else 1.0)
         span = np.where(t, k[:, cols] - 1, 0)
         pooled = np.divide(sxy, sxx, out=np.zeros_like(sxy), where=ok)
         out[g] = Trend(

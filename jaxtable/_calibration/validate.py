@@ -25,6 +25,7 @@ import optimistix as optx
 from .. import _params as params
 from .._api import forward_solve
 from .._batch import _pad_rows, chunk_rows, run_batch
+from .._distributions import t_sf
 from .._effects import resolve_effects
 from .._forward import platform_radius
 from .._jit import LARGE_BATCH, jit
@@ -548,8 +549,6 @@ def time_trend(residual: np.ndarray, time: np.ndarray) -> tuple | None:
     `residual` (M, 6, NaN = not measured) that departs most surely from flat: the slope's
     t test (M − 2 dof, its scatter from the residuals about the line), Bonferroni over the
     columns tested (those with `TREND_MIN_ROWS` values or more); None when none is."""
-    from scipy.stats import t as t_dist  # here: `import jaxtable` would spend ~0.6 s on it
-
     best = None
     tested = 0
     for k in range(residual.shape[1]):
@@ -562,7 +561,7 @@ def time_trend(residual: np.ndarray, time: np.ndarray) -> tuple | None:
         rest = e - e.mean() - slope * t
         dof = ok.sum() - 2
         se = np.sqrt((rest @ rest) / dof / (t @ t))
-        p = 2 * t_dist.sf(abs(slope) / se, dof) if se > 0 else 0.0
+        p = 2 * t_sf(abs(slope) / se, dof) if se > 0 else 0.0
         if best is None or p < best[0]:
             best = (float(p), k, float(slope))
     if best is None:
