@@ -140,17 +140,18 @@ def _slots(leaves) -> list:
 
 def _avals(xs) -> tuple:
     """(shape, dtype, weak type) of each array. One call for all of a call's arrays: the
-    repeat path (`_repeat`) compares them on every call, ~70 arrays for a fit's block. A
+    repeat path (`_repeat`) compares them on every call, ~70 arrays for a fit's block (read
+    as attributes: 34 µs for 85 arrays, where numpy's `np.shape` and `np.dtype` took 78). A
     leaf that is not an array (a Python number where an earlier call had an array) gets its
     type's name, which no array's dtype equals."""
-    return tuple(
-        (
-            np.shape(x),
-            np.dtype(x.dtype).str if hasattr(x, "dtype") else type(x).__name__,
-            bool(getattr(x, "weak_type", False)),
-        )
-        for x in xs
-    )
+    return tuple(_aval(x) for x in xs)
+
+
+def _aval(x) -> tuple:
+    try:
+        return x.shape, x.dtype.str, bool(getattr(x, "weak_type", False))
+    except AttributeError:  # not an array
+        return np.shape(x), type(x).__name__, False
 
 
 def _sharded(xs) -> bool:
