@@ -684,8 +684,7 @@ def _gauss_newton(problem, layout, theta0, mask, rtol, atol, max_steps, rcond=1e
         return A.T @ A + np.diag(lam[free]), A
 
     def scaled(x):  # free parameters' values (or differences) in the scaled variables
-        on = D > 0
-        return np.where(on, x[free] / np.where(on, D, 1.0), 0.0)
+        return x[free] / D  # (D > 0 on every free parameter: `_scales` of a nonzero mask)
 
     def moved(f, p):  # f (P,) moved by the scaled step p of the free parameters
         out = f.copy()
