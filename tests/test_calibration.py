@@ -189,14 +189,21 @@ def test_fit_jacobian_equals_central_differences(table):
     derivative) = central differences of the weighted residual, in every kind of parameter:
     joints, zero lengths, the spiral lead, backlash and compliance (whose leg forces solve
     the statics at each pose; a 20 kg payload in session 2) and the frames of two tracker
-    sessions, at a point where every parameter has moved from its start. Evaluated 7 stops
-    at a time (`jacobian_in_chunks`: the 24 stops as 7 + 7 + 7 + 3, padded, one compiled
-    program; its rows are those of `jacobian` and of the fit's loop), with the residual of
+    sessions, at a point where every parameter has moved from its start. Evaluated 3 stops
+    at a time (`jacobian_in_chunks`: the 24 stops as 8 blocks of one compiled program, run
+    from the pool of host threads (`POOL_BLOCKS`) and each embedded into J's rows as it
+    comes; its rows are those of `jacobian` and of the fit's loop), with the residual of
     the whole set and every solve flag."""
     import jax.numpy as jnp
     from jax.flatten_util import ravel_pytree
 
-    from jaxtable._calibration.fit import _scales, jacobian_in_chunks, residual_jit, setup
+    from jaxtable._calibration.fit import (
+        POOL_BLOCKS,
+        _scales,
+        jacobian_in_chunks,
+        residual_jit,
+        setup,
+    )
     from jaxtable._effects import Backlash, Compliance, Spiral
     from jaxtable._params import GEOMETRY
 
@@ -224,7 +231,9 @@ def test_fit_jacobian_equals_central_differences(table):
     flat, unravel = ravel_pytree(st.theta0)
 
     def jac(theta):
-        return jacobian_in_chunks(st.problem, st.layout, theta, rows=7)
+        return jacobian_in_chunks(st.problem, st.layout, theta, rows=3)
+
+    assert 24 // 3 >= POOL_BLOCKS
 
     J0 = jac(st.theta0)[0]
     assert np.all(np.linalg.norm(J0, axis=0) > 0)  # every parameter matters

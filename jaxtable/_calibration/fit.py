@@ -248,14 +248,17 @@ class _Canonical:
     pick: np.ndarray
     products: tuple = ()
 
-    def jacobian(self, J_c: np.ndarray) -> np.ndarray:
-        """J_c @ embed (M, P) for the canonical Jacobian J_c (M, P_c): the columns that are
-        one canonical column each in one gather over J_c's rows (`pick`), then each other
-        block of θ as a product over the rows of `embed` it reaches (`products`). The dense
-        product spent ~3 ms of each Jacobian of a 150-stop diagnosis multiplying zeros; a
-        copy or product per block of θ passed over J_c once a block (28 blocks in a
-        diagnosis: 32 → 16 ms a Jacobian of 5,000 stops and 204 canonical columns)."""
-        out = np.take(J_c, self.pick, axis=1)  # the products' columns are overwritten
+    def jacobian(self, J_c: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """J_c @ embed (M, P) for the canonical Jacobian J_c (M, P_c), written into `out`
+        (M, P, C-contiguous) where given: the columns that are one canonical column each in
+        one gather over J_c's rows (`pick`), then each other block of θ as a product over
+        the rows of `embed` it reaches (`products`). The dense product spent ~3 ms of each
+        Jacobian of a 150-stop diagnosis multiplying zeros; a copy or product per block of θ
+        passed over J_c once a block (28 blocks in a diagnosis: 32 → 16 ms a Jacobian of
+        5,000 stops and 204 canonical columns)."""
+        # the products' columns are overwritten; "clip": `out` written directly (the default
+        # mode buffers it), and every index of `pick` is in range anyway
+        out = np.take(J_c, self.pick, axis=1, out=out, mode="clip")
         for j0, j1, r0, r1 in self.products:  # blocks of parameters, not data
             out[:, j0:j1] = J_c[:, r0:r1] @ self.embed[r0:r1, j0:j1]
         return out
@@ -511,14 +514,29 @@ def jacobian_in_chunks(
     pose selection and the discrimination plan (whose candidate poses change in number from
     call to call) share it. `flat` (P,): the parameters as a flat vector laid out as `theta`
     (default θ itself); `blocks`: `_stop_blocks(problem, layout, rows)` when the caller has them
-    (a fit evaluates each step on the same blocks)."""
+    (a fit evaluates each step on the same blocks).
+
+    The blocks' programs are all started before any result is read, and each block's rows
+    are embedded (`_Canonical.jacobian`) into J as soon as its program is through, while
+    the next blocks compute: joining the blocks' J_c and embedding the whole afterwards
+    passed twice over J_c (~26 ms an evaluation of 5,000 stops and 204 canonical
+    columns, after the blocks' ~140 ms)."""
     flat = _flat(theta) if flat is None else np.asarray(flat)
     can = _canonical(problem, layout, theta)
     flat_c = can.embed @ flat  # host array: a copy to the device costs more than a few calls
     blocks = _stop_blocks(problem, layout, rows) if blocks is None else blocks
     out = _in_blocks(blocks, lambda b: _block_jacobian(b, can.layout, can.template, flat_c))
-    J_c, r, solved = (_joined([o[i] for o in out], blocks, m) for i, m in ((0, 6), (1, 6), (2, 1)))
-    return can.jacobian(J_c), r, solved
+    n = sum(k for _, k in blocks)
+    J = np.empty((6 * n, can.embed.shape[1]))
+    r, solved = np.empty(6 * n), np.empty(n, dtype=bool)
+    start = 0
+    for (J_b, r_b, solved_b), (_, k) in zip(out, blocks):  # blocks of a batch, in order
+        rows = slice(6 * start, 6 * (start + k))
+        can.jacobian(np.asarray(J_b)[: 6 * k], out=J[rows])
+        r[rows] = np.asarray(r_b)[: 6 * k]
+        solved[start : start + k] = np.asarray(solved_b)[:k]
+        start += k
+    return J, r, solved
 
 
 POOL_BLOCKS = 8
