@@ -526,16 +526,12 @@ def jacobian_in_chunks(
     flat_c = can.embed @ flat  # host array: a copy to the device costs more than a few calls
     blocks = _stop_blocks(problem, layout, rows) if blocks is None else blocks
     out = _in_blocks(blocks, lambda b: _block_jacobian(b, can.layout, can.template, flat_c))
-    n = sum(k for _, k in blocks)
-    J = np.empty((6 * n, can.embed.shape[1]))
-    r, solved = np.empty(6 * n), np.empty(n, dtype=bool)
+    J = np.empty((6 * sum(k for _, k in blocks), can.embed.shape[1]))
     start = 0
-    for (J_b, r_b, solved_b), (_, k) in zip(out, blocks):  # blocks of a batch, in order
-        rows = slice(6 * start, 6 * (start + k))
-        can.jacobian(np.asarray(J_b)[: 6 * k], out=J[rows])
-        r[rows] = np.asarray(r_b)[: 6 * k]
-        solved[start : start + k] = np.asarray(solved_b)[:k]
+    for (J_b, _, _), (_, k) in zip(out, blocks):  # blocks of a batch, in order
+        can.jacobian(np.asarray(J_b)[: 6 * k], out=J[6 * start : 6 * (start + k)])
         start += k
+    r, solved = (_joined([o[i] for o in out], blocks, m) for i, m in ((1, 6), (2, 1)))
     return J, r, solved
 
 
