@@ -336,8 +336,9 @@ def residual_gp(
     score it on `folds` held-out folds (`grouped`: contiguous stretches of the run, as the
     discovery dictionary's gains are scored; else rows dealt at random).
 
-    Its cost grows as the cube of the stops (100: ~6 s, 200: ~20 s, 400: ~2 min on two
-    cores; its covariance holds (6 N)² numbers): a longer run is modelled on `max_rows`
+    Its cost grows as the cube of the stops (the fit of the hyper-parameters on two cores:
+    100 stops ~1–2 s, 200 ~8 s, 400 about a minute by the cube; the first call of a size
+    compiles for ~4 s more; its covariance holds (6 N)² numbers): a longer run is modelled on `max_rows`
     stops spread evenly over it (every k-th, so each session, the temperature and time
     ranges keep their share), which is what the hints need; `rows` says which."""
     if cal.jacobian_full is None or cal.residual is None:
