@@ -338,9 +338,10 @@ def residual_gp(
 
     Its cost grows as the cube of the stops (the fit of the hyper-parameters on two cores:
     100 stops ~1–2 s, 200 ~8 s, 400 about a minute by the cube; the first call of a size
-    compiles for ~4 s more; its covariance holds (6 N)² numbers): a longer run is modelled on `max_rows`
-    stops spread evenly over it (every k-th, so each session, the temperature and time
-    ranges keep their share), which is what the hints need; `rows` says which."""
+    compiles for ~4 s more; its covariance holds (6 N)² numbers): a longer run is
+    modelled on `max_rows` stops spread evenly over it (every k-th, so each session, the
+    temperature and time ranges keep their share), which is what the hints need; `rows`
+    says which."""
     if cal.jacobian_full is None or cal.residual is None:
         raise ValueError("residual_gp needs a fit with its full Jacobian (diagnose's, or fit())")
     mask_all = np.asarray(st.mask, bool)
