@@ -152,8 +152,8 @@ def test_a_long_run_is_modelled_on_stops_spread_over_it(planted):
 def test_reml_derivatives_are_those_of_the_cholesky_form():
     """The REML likelihood's closed-form derivatives (`gp._reml`: P and the generalised
     least-squares coefficients, P from blocked triangular inverses) against reverse mode
-    through the Cholesky form written out here, in C, y and U, at a size whose blocks
-    recurse twice (520 readings: 260, then 130 rows)."""
+    through the likelihood written out here with an explicit inverse and log-determinants,
+    in C, y and U, at a size whose blocks recurse twice (520 readings: 260, then 130 rows)."""
     import jax
     import jax.numpy as jnp
 

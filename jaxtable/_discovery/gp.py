@@ -218,7 +218,7 @@ def _reml(C, y, U):
     mode through the Cholesky factor instead took two triangular solves and a product of
     n × n matrices (~60 ms at n = 900, most of a hyper-parameter step); P takes a triangular
     inverse and a product of triangles, in blocks (`_lower_inverse`, `_lower_gram`): a GP
-    fit of 150 stops 10.4–11.6 → 6.5–7.9 s, the same steps and optimum."""
+    fit of 150 stops 11.2–11.5 → 6.7–6.8 s, the same steps and optimum."""
     return _reml_parts(C, y, U)[0]
 
 
