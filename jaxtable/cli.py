@@ -731,7 +731,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser(
         "calibrate",
-        help="fit parameters to a measurement CSV (LM), with "
+        help="fit parameters to a measurement CSV (Gauss–Newton), with "
         "covariance and an identifiability report",
     )
     sp.add_argument("data", type=Path, help="measurement CSV")

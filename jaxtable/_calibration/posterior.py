@@ -391,8 +391,8 @@ def predictive_bands(
     if not ok[0].all():
         bad = np.flatnonzero(~ok[0]) + 1
         raise KinematicsError(
-            f"forward kinematics of the fitted (LM) table failed at {len(bad)} of the "
-            f"{len(poses)} commanded pose(s): {bad.tolist()[:10]}"
+            f"forward kinematics of the fitted table (the fit's optimum) failed at {len(bad)} "
+            f"of the {len(poses)} commanded pose(s): {bad.tolist()[:10]}"
             + (" ..." if len(bad) > 10 else "")
             + " (1-based); are they inside the workspace?"
         )
