@@ -4,7 +4,6 @@ a planted smooth effect and its strongest component names the leg and the featur
 noise alone it gains next to nothing; where the residuals pull the kernel towards its
 polynomial limit, the fit still ends at one optimum whatever the rounding (the noise floor)."""
 
-import csv
 import dataclasses
 
 import numpy as np
@@ -128,10 +127,10 @@ def test_gp_gains_little_on_noise(planted):
     assert max(gains) < 0.5 * gp.gain, (gains, gp.gain)
 
 
-def _lab_file(path, seed: int, n: int = 100, lost: int = 30):
-    """A measured file as a lab writes one: a perturbed table with the spiral (its lead 4 %
+def _lab_data(seed: int, n: int = 100, lost: int = 30):
+    """Measured data as a lab records them: a perturbed table with the spiral (its lead 4 %
     off) and backlash hidden, a 6-D tracker set up anew for each of two sessions, no σ and
-    no commanded lengths in the file, and `lost` pose cells left blank."""
+    no commanded lengths, and `lost` pose cells lost."""
     nominal = jt.reference_table()
     true = jt.perturb_table(nominal, seed)
     effects = {
@@ -156,29 +155,22 @@ def _lab_file(path, seed: int, n: int = 100, lost: int = 30):
         )
         for i, (k, frame, name) in enumerate(zip((n // 2, n - n // 2), frames, ("mon", "tue")))
     ]
-    jt.save_measurements(concat(*runs), path)
-    with open(path, newline="") as fh:
-        head, *body = list(csv.reader(fh))
-    keep = [i for i, h in enumerate(head) if not h.startswith(("cmd_l", "sigma"))]
-    head, body = [head[i] for i in keep], [[r[i] for i in keep] for r in body]
-    cells = [j for j, h in enumerate(head) if h in ("x", "y", "z", "roll", "pitch", "yaw")]
+    data = concat(*runs)
+    m = data.measured.copy()
     rng = np.random.default_rng(seed)
-    for r, c in zip(rng.choice(len(body), lost, replace=False), rng.choice(cells, lost)):
-        body[r][c] = ""
-    with open(path, "w", newline="") as fh:
-        csv.writer(fh).writerows([head, *body])
-    return jt.load_measurements(path)
+    m[rng.choice(len(m), lost, replace=False), rng.choice(6, lost)] = np.nan
+    return dataclasses.replace(data, measured=m, sigma=None, cmd_lengths=None)
 
 
-def test_where_the_fit_ends_does_not_depend_on_rounding(tmp_path):
-    """A lab-form file whose residuals an additive squared-exponential kernel reaches only in
+def test_where_the_fit_ends_does_not_depend_on_rounding():
+    """Lab-form data whose residuals an additive squared-exponential kernel reaches only in
     its polynomial limit (seed 3; found with `diagnose --effects thermal` on such files): the
     residuals perturbed by 1e-9 of themselves, twice, and the GP fitted again each time ends
     at the same optimum, with the same gain and the same hints. Without the noise floor
     (`gp.NOISE_FLOOR = 0`) the per-leg amplitudes ran to variances of ~10¹² σ², the
     covariance turned numerically indefinite, and the three fits ended at log evidences
-    297.6, −22.1 and 335.8 (held-out gains 76.4, 55.1 and 75.8 %)."""
-    data = _lab_file(tmp_path / "lab.csv", seed=3)
+    335.8, 278.3 and −20.0."""
+    data = _lab_data(seed=3)
     diag = jt.diagnose(
         jt.reference_table(),
         data,
